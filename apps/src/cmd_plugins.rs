@@ -1,0 +1,21 @@
+//! `capsule-slam plugins`.
+
+pub fn run() -> anyhow::Result<()> {
+    let registry = crate::registry()?;
+    for e in registry.iter() {
+        println!("{} ({})", e.name, e.kind.as_str());
+        println!("    {}", e.summary);
+        let params = (e.params)();
+        if params.is_empty() {
+            println!("    no parameters");
+        }
+        for p in params {
+            let default = p.default.map_or_else(|| "-".to_owned(), |v| v.to_string());
+            let range = p.range.map(|(lo, hi)| format!(" in [{lo}, {hi}]")).unwrap_or_default();
+            println!("    {} = {default}  [{}{range}]", p.name, p.unit);
+            println!("        {}", p.doc);
+        }
+        println!();
+    }
+    Ok(())
+}

@@ -1,0 +1,107 @@
+//! `capsule-slam run`: assemble the pipeline from the config, run it over the input, write the
+//! outputs and print the metrics.
+
+use std::path::PathBuf;
+
+use anyhow::{Context as _, bail};
+use capsule_slam_framework::config::Config;
+use capsule_slam_framework::io::{Dataset, RunWriter};
+use capsule_slam_framework::pipeline::Pipeline;
+use capsule_slam_framework::pipeline::run::{RunOptions, run as run_pipeline};
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::{Registry, StageKind};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Arguments of `run`.
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// Configuration file (TOML); absent: the defaults.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Input folder (TUM RGB-D layout or images, with camera.toml); overrides [input] path.
+    #[arg(long)]
+    input: Option<PathBuf>,
+    /// Output folder; overrides [output] dir.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Override any config key: KEY=VALUE, VALUE a TOML value or a bare word (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// Process at most N frames; overrides [input] max_frames.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// No progress bar.
+    #[arg(short, long)]
+    quiet: bool,
+}
+
+/// The oracle that stands in for a default stage whose real plugin is not in this build.
+const ORACLES: [(StageKind, &str); 2] = [(StageKind::DepthEstimator, "sensor"), (StageKind::Tracker, "ground-truth")];
+
+/// Replaces default stage choices that this build lacks by their oracle, saying so.
+fn substitute_oracles(config: &mut Config, registry: &Registry) {
+    let defaults = capsule_slam_framework::config::PipelineConfig::default();
+    let p = &mut config.pipeline;
+    for (kind, oracle) in ORACLES {
+        let (slot, default) = match kind {
+            StageKind::DepthEstimator => (&mut p.depth, &defaults.depth),
+            _ => (&mut p.tracker, &defaults.tracker),
+        };
+        if slot == default && registry.get(slot).is_none() && registry.get(oracle).is_some() {
+            eprintln!("note: the default {} `{slot}` is not in this build; using the oracle `{oracle}` instead", kind.as_str());
+            *slot = oracle.to_owned();
+        }
+    }
+}
+
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let registry = crate::registry()?;
+    let mut config = Config::load(args.config.as_deref(), &args.set)?;
+    let source = args.config.as_ref().map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
+    if let Some(i) = &args.input {
+        config.input.path = Some(i.clone());
+    }
+    if let Some(o) = &args.out {
+        config.output.dir = o.clone();
+    }
+    if let Some(n) = args.frames {
+        config.input.max_frames = Some(n);
+    }
+    substitute_oracles(&mut config, &registry);
+    let Some(input) = config.input.path.clone() else {
+        bail!("no input: give --input DIR (a TUM RGB-D folder or an image folder with camera.toml) or set [input] path in the config");
+    };
+    let dataset = Dataset::open(&input, &config.input, config.camera.as_ref()).with_context(|| format!("opening the input {}", input.display()))?;
+    if dataset.dropped_without_depth() > 0 {
+        eprintln!("note: {} rgb frames have no depth image within {} s and are skipped", dataset.dropped_without_depth(), config.input.association_tolerance_s);
+    }
+    let env = BuildEnv::new(dataset.rig(), Some(input.clone()));
+    let mut pipeline = Pipeline::build(&config, &source, &registry, &env)?;
+    let out = config.output.dir.clone();
+    let mut writer =
+        RunWriter::create(&out, &pipeline.resolved_config().to_toml_string()).with_context(|| format!("creating the output folder {}", out.display()))?;
+
+    let n = config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
+    let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };
+    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    let opts = RunOptions { max_frames: config.input.max_frames, write_map: config.output.map };
+    let result = run_pipeline(&dataset, &mut pipeline, &mut writer, &opts, |rec| {
+        for w in rec.warnings() {
+            bar.suspend(|| eprintln!("warning: frame {}: {w}", rec.index));
+        }
+        bar.inc(1);
+    });
+    bar.finish_and_clear();
+    let summary = result.with_context(|| format!("run stopped; the output so far is in {}", out.display()))?;
+
+    println!("frames            {}", summary.frames);
+    println!("frames lost       {}", summary.frames_lost);
+    println!("ms per frame      {:.2} mean, {:.2} p95", summary.ms_per_frame_mean, summary.ms_per_frame_p95);
+    println!("surfels           {} ({} active)", summary.surfels, summary.surfels_active);
+    println!("loop closures     {}", summary.loop_closures);
+    if let Some(a) = summary.ate_rmse_m {
+        println!("ATE RMSE (SE3)    {:.3} mm", a * 1e3);
+    }
+    println!("outputs           {}", out.display());
+    Ok(())
+}

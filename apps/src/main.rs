@@ -1,0 +1,47 @@
+//! `capsule-slam`: the command line of the capsule-slam framework.
+
+mod cmd_config;
+mod cmd_plugins;
+mod cmd_run;
+
+use clap::{Parser, Subcommand};
+
+/// Dense non-rigid RGB-D SLAM for endoscopic capsule robots (after Turan et al. 2017).
+#[derive(Parser, Debug)]
+#[command(name = "capsule-slam", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run a pipeline over a sequence and write the trajectory, the map and the metrics.
+    Run(cmd_run::RunArgs),
+    /// List every registered plugin with its stage, parameters, defaults and units.
+    Plugins,
+    /// Print configuration.
+    Config(cmd_config::ConfigArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    capsule_slam_plugins::link();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run(a) => cmd_run::run(&a),
+        Command::Plugins => cmd_plugins::run(),
+        Command::Config(a) => cmd_config::run(&a),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// The registry of every linked plugin.
+fn registry() -> anyhow::Result<capsule_slam_framework::Registry> {
+    Ok(capsule_slam_framework::Registry::from_inventory()?)
+}

@@ -1,0 +1,65 @@
+//! The `capsule-slam` binary: discovery commands, `--set` overrides and clear errors.
+
+use std::process::Command;
+
+use capsule_slam_framework::config::Config;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_capsule-slam"))
+}
+
+fn output(args: &[&str]) -> (bool, String, String) {
+    let o = bin().args(args).output().expect("run capsule-slam");
+    (o.status.success(), String::from_utf8_lossy(&o.stdout).into_owned(), String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+#[test]
+fn plugins_lists_every_plugin_with_units() {
+    let (ok, out, _) = output(&["plugins"]);
+    assert!(ok);
+    assert!(out.contains("sensor (depth estimator)"), "{out}");
+    assert!(out.contains("ground-truth (tracker)"), "{out}");
+    assert!(out.contains("max_depth_m = 0.3  [m in [0, 100]]"), "{out}");
+}
+
+#[test]
+fn the_default_config_is_complete_and_parses() {
+    let (ok, out, _) = output(&["config", "--default"]);
+    assert!(ok);
+    let c = Config::from_table(out.parse().expect("valid TOML")).expect("valid config");
+    assert_eq!(c.pipeline, capsule_slam_framework::config::PipelineConfig::default());
+    assert!(out.contains("[plugins.sensor]") && out.contains("# [plugins.ground-truth]"), "{out}");
+}
+
+#[test]
+fn set_overrides_reach_the_validation() {
+    let tmp = tempfile::tempdir().unwrap();
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
+    let input = tmp.path().to_str().unwrap();
+    let (ok, _, err) = output(&["run", "--input", input, "--set", "pipeline.tracker=icp-magic", "--set", "plugins.sensor.max_depth_m=-1", "-q"]);
+    assert!(!ok);
+    assert!(err.contains("pipeline.tracker") && err.contains("ground-truth"), "{err}");
+    assert!(err.contains("plugins.sensor.max_depth_m"), "{err}");
+}
+
+#[test]
+fn run_without_a_fuser_in_the_build_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
+    let (ok, _, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", tmp.path().join("out").to_str().unwrap(), "-q"]);
+    if ok {
+        // A build with a fuser runs the default pipeline to the end.
+        assert!(tmp.path().join("out/summary.json").exists());
+    } else {
+        assert!(err.contains("using the oracle `ground-truth`"), "{err}");
+        assert!(err.contains("pipeline.fuser") && err.contains("no fuser plugin is registered"), "{err}");
+    }
+}
+
+#[test]
+fn a_missing_input_or_config_names_the_path() {
+    let (ok, _, err) = output(&["run", "--input", "/nonexistent/seq", "-q"]);
+    assert!(!ok && err.contains("/nonexistent/seq"), "{err}");
+    let (ok, _, err) = output(&["run", "--config", "/nonexistent/c.toml", "-q"]);
+    assert!(!ok && err.contains("/nonexistent/c.toml"), "{err}");
+}

@@ -1,0 +1,199 @@
+//! Embedded deformation (Sumner, Schmid and Pauly 2007, "Embedded deformation for shape
+//! manipulation", SIGGRAPH, doi:10.1145/1275808.1276478), as the paper's Eqs. (5)–(7) apply
+//! it to the surfel map. A loop closer computes a [`Deformation`]; the pipeline applies it to
+//! the map (through the fuser) and to the trajectory, so every consumer warps the same way.
+//!
+//! Influencing nodes here are the `k` nearest nodes in space (Sumner's rule, the paper's text);
+//! ElasticFusion's time-windowed variant is a loop closer's choice of node set, not of the warp.
+
+use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+
+use crate::geometry::Iso3;
+
+/// One graph node: position g, affine 3×3 R and translation t, and its creation time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeformationNode {
+    /// Node position g, metres, world frame.
+    pub position_m: Point3<f64>,
+    /// Affine part R (identity when undeformed).
+    pub rotation: Matrix3<f64>,
+    /// Translation t, metres (zero when undeformed).
+    pub translation_m: Vector3<f64>,
+    /// Frame index the node was sampled at.
+    pub t0: u32,
+}
+
+impl DeformationNode {
+    /// An undeformed node at `position_m`.
+    pub fn identity(position_m: Point3<f64>, t0: u32) -> Self {
+        Self { position_m, rotation: Matrix3::identity(), translation_m: Vector3::zeros(), t0 }
+    }
+
+    /// The node's local transform of a point: `R (v − g) + g + t` (one term of Eq. (5)).
+    pub fn transform(&self, v: &Point3<f64>) -> Point3<f64> {
+        self.position_m + self.rotation * (v - self.position_m) + self.translation_m
+    }
+}
+
+/// A deformation graph with optimised node transforms.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Deformation {
+    /// The nodes.
+    pub nodes: Vec<DeformationNode>,
+    /// Number of influencing nodes per point (k; the (k+1)-th nearest gives d_max).
+    pub k: usize,
+}
+
+impl Deformation {
+    /// The influencing nodes of `p` with their normalised weights,
+    /// `w_n = (1 − ‖p − g_n‖ / d_max)²` (Eq. (7)), d_max the distance to the (k+1)-th nearest
+    /// node. With k or fewer nodes, d_max is 1.01 × the farthest one's distance.
+    pub fn influences(&self, p: &Point3<f64>) -> Vec<(usize, f64)> {
+        let mut d: Vec<(usize, f64)> = self.nodes.iter().enumerate().map(|(i, n)| (i, (p - n.position_m).norm())).collect();
+        d.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+        let k = self.k.max(1);
+        let d_max = match d.get(k) {
+            Some(&(_, dk)) => dk,
+            None => d.last().map_or(0.0, |&(_, dl)| 1.01 * dl),
+        };
+        d.truncate(k);
+        let mut w: Vec<(usize, f64)> = d.iter().map(|&(i, di)| (i, if d_max > 0.0 { (1.0 - di / d_max).max(0.0).powi(2) } else { 1.0 })).collect();
+        let sum: f64 = w.iter().map(|x| x.1).sum();
+        if sum > 0.0 {
+            w.iter_mut().for_each(|x| x.1 /= sum);
+        } else if let Some(first) = w.first_mut() {
+            // Every node is exactly at d_max: fall back to the nearest one alone.
+            first.1 = 1.0;
+            w.truncate(1);
+        }
+        w
+    }
+
+    /// Warps a point, Eq. (5): `φ(v) = Σ w_n [R_n (v − g_n) + g_n + t_n]`.
+    pub fn warp_point(&self, p: &Point3<f64>) -> Point3<f64> {
+        self.warp_with(p, &self.influences(p))
+    }
+
+    /// Warps a normal at point `p`, Eq. (6): `n' = normalize(Σ w_n R_n⁻ᵀ n)`.
+    pub fn warp_normal(&self, p: &Point3<f64>, n: &Vector3<f64>) -> Vector3<f64> {
+        let infl = self.influences(p);
+        self.warp_normal_with(n, &infl)
+    }
+
+    /// [`Deformation::warp_point`] with precomputed influences.
+    pub fn warp_with(&self, p: &Point3<f64>, influences: &[(usize, f64)]) -> Point3<f64> {
+        if influences.is_empty() {
+            return *p;
+        }
+        let mut out = Vector3::zeros();
+        for &(i, w) in influences {
+            out += w * self.nodes[i].transform(p).coords;
+        }
+        Point3::from(out)
+    }
+
+    /// [`Deformation::warp_normal`] with precomputed influences.
+    pub fn warp_normal_with(&self, n: &Vector3<f64>, influences: &[(usize, f64)]) -> Vector3<f64> {
+        let mut out = Vector3::zeros();
+        for &(i, w) in influences {
+            let r = self.nodes[i].rotation;
+            let r_inv_t = r.try_inverse().map_or(r, |m| m.transpose());
+            out += w * (r_inv_t * n);
+        }
+        let len = out.norm();
+        if len > 1e-12 { out / len } else { *n }
+    }
+
+    /// Warps a camera pose: its position as a point, its rotation by the SVD-orthonormalised
+    /// blend `Σ w_n R_n` (ElasticFusion's pose update).
+    pub fn warp_pose(&self, t_world_cam: &Iso3) -> Iso3 {
+        let p = Point3::from(t_world_cam.translation.vector);
+        let infl = self.influences(&p);
+        if infl.is_empty() {
+            return *t_world_cam;
+        }
+        let blend: Matrix3<f64> = infl.iter().map(|&(i, w)| w * self.nodes[i].rotation).sum();
+        let r = orthonormalise(&blend) * t_world_cam.rotation.to_rotation_matrix();
+        Iso3::from_parts(self.warp_with(&p, &infl).coords.into(), UnitQuaternion::from_rotation_matrix(&r))
+    }
+}
+
+/// The rotation nearest to `m` in the Frobenius norm (U Vᵀ of its SVD, with the sign fixed so
+/// that the determinant is +1).
+pub fn orthonormalise(m: &Matrix3<f64>) -> Rotation3<f64> {
+    let svd = m.svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => {
+            let mut r = u * v_t;
+            if r.determinant() < 0.0 {
+                let mut u2 = u;
+                u2.column_mut(2).neg_mut();
+                r = u2 * v_t;
+            }
+            Rotation3::from_matrix_unchecked(r)
+        }
+        _ => Rotation3::identity(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn grid(k: usize) -> Deformation {
+        let mut nodes = Vec::new();
+        for i in 0..4 {
+            for j in 0..4 {
+                nodes.push(DeformationNode::identity(Point3::new(i as f64 * 0.01, j as f64 * 0.01, 0.0), 0));
+            }
+        }
+        Deformation { nodes, k }
+    }
+
+    proptest! {
+        #[test]
+        fn identity_deformation_is_a_no_op(x in -0.01f64..0.05, y in -0.01f64..0.05, z in -0.01f64..0.01) {
+            let d = grid(4);
+            let p = Point3::new(x, y, z);
+            prop_assert!((d.warp_point(&p) - p).norm() < 1e-12);
+            let n = Vector3::new(0.3, -0.2, 0.9).normalize();
+            prop_assert!((d.warp_normal(&p, &n) - n).norm() < 1e-12);
+        }
+
+        #[test]
+        fn weights_sum_to_one(x in -0.01f64..0.05, y in -0.01f64..0.05) {
+            let w = grid(4).influences(&Point3::new(x, y, 0.003));
+            prop_assert_eq!(w.len(), 4);
+            prop_assert!((w.iter().map(|x| x.1).sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn rigid_deformation_moves_points_and_poses_rigidly() {
+        let rot = Rotation3::from_euler_angles(0.1, -0.05, 0.2);
+        let shift = Vector3::new(0.002, -0.001, 0.003);
+        let mut d = grid(4);
+        // A rigid motion x ↦ R x + s expressed per node: R (v − g) + g + t with t = R g + s − g.
+        for n in &mut d.nodes {
+            n.rotation = *rot.matrix();
+            n.translation_m = rot * n.position_m.coords + shift - n.position_m.coords;
+        }
+        let p = Point3::new(0.013, 0.021, 0.002);
+        assert!((d.warp_point(&p) - (rot * p + shift)).norm() < 1e-12);
+        let n = Vector3::new(0.0, 0.6, 0.8);
+        assert!((d.warp_normal(&p, &n) - rot * n).norm() < 1e-12);
+        let pose = Iso3::translation(0.01, 0.01, -0.02);
+        let warped = d.warp_pose(&pose);
+        assert!((warped.rotation.to_rotation_matrix().matrix() - rot.matrix()).norm() < 1e-9);
+        assert!((warped.translation.vector - (rot * pose.translation.vector + shift)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn orthonormalise_returns_a_rotation() {
+        let m = Matrix3::new(1.1, 0.1, 0.0, -0.05, 0.9, 0.02, 0.0, 0.03, 1.2);
+        let r = orthonormalise(&m);
+        assert!((r.matrix() * r.matrix().transpose() - Matrix3::identity()).norm() < 1e-12);
+        assert!((r.matrix().determinant() - 1.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,175 @@
+//! Frames: what the camera delivers ([`CameraFrame`]) and what the stages after depth
+//! estimation see ([`RgbdFrame`]).
+
+use std::collections::BTreeMap;
+
+use crate::geometry::Iso3;
+use crate::image::{DepthMap, GrayF32, Mask, Rgb8};
+use crate::stage::ViewKind;
+
+/// Well-known mask name: specular highlights found by a preprocessor.
+pub const MASK_SPECULAR: &str = "specular";
+/// Well-known mask name: pixels outside the lens' round field of view.
+pub const MASK_OUT_OF_VIEW: &str = "out-of-view";
+
+/// Named per-pixel masks. A set pixel marks a pixel that later stages must ignore
+/// (a specular highlight, a pixel outside the field of view, ...).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Masks(BTreeMap<String, Mask>);
+
+impl Masks {
+    /// No masks.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds or replaces a mask.
+    pub fn insert(&mut self, name: impl Into<String>, mask: Mask) {
+        self.0.insert(name.into(), mask);
+    }
+
+    /// A mask by name.
+    pub fn get(&self, name: &str) -> Option<&Mask> {
+        self.0.get(name)
+    }
+
+    /// Masks in name order.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &Mask)> {
+        self.0.iter().map(|(k, v)| (k.as_str(), v))
+    }
+
+    /// Whether any mask marks pixel `(x, y)` (it is to be ignored).
+    pub fn ignored(&self, x: usize, y: usize) -> bool {
+        self.0.values().any(|m| m.at(x, y))
+    }
+
+    /// The union of all masks, or `None` when there are none.
+    pub fn union(&self) -> Option<Mask> {
+        let mut it = self.0.values();
+        let mut out = it.next()?.clone();
+        for m in it {
+            for (o, v) in out.data_mut().iter_mut().zip(m.data()) {
+                *o |= *v;
+            }
+        }
+        Some(out)
+    }
+}
+
+/// The images of one exposure.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Views {
+    /// One camera.
+    Mono(Rgb8),
+    /// A rectified stereo pair.
+    Stereo {
+        /// Reference (left) image.
+        left: Rgb8,
+        /// Right image.
+        right: Rgb8,
+    },
+}
+
+impl Views {
+    /// The reference image (the mono image, or the left one).
+    pub fn reference(&self) -> &Rgb8 {
+        match self {
+            Views::Mono(i) => i,
+            Views::Stereo { left, .. } => left,
+        }
+    }
+
+    /// Every image, mutable, so that a mono preprocessor works on stereo unchanged.
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut Rgb8> {
+        let v: Vec<&mut Rgb8> = match self {
+            Views::Mono(i) => vec![i],
+            Views::Stereo { left, right } => vec![left, right],
+        };
+        v.into_iter()
+    }
+
+    /// Mono or stereo.
+    pub fn kind(&self) -> ViewKind {
+        match self {
+            Views::Mono(_) => ViewKind::Mono,
+            Views::Stereo { .. } => ViewKind::Stereo,
+        }
+    }
+}
+
+/// A frame as read from the input, before depth estimation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraFrame {
+    /// 0-based index in the sequence.
+    pub index: usize,
+    /// Timestamp, seconds.
+    pub timestamp_s: f64,
+    /// The camera image(s).
+    pub views: Views,
+    /// Depth from a sensor or the phantom's ground truth, if the input has it.
+    pub depth_m: Option<DepthMap>,
+    /// Ground-truth camera pose, if the input has it.
+    pub gt_t_world_cam: Option<Iso3>,
+    /// Masks of pixels to ignore.
+    pub masks: Masks,
+}
+
+/// What tracking, fusion and loop closure see: one colour image with its depth, whatever
+/// produced the depth (a sensor, shape from shading, a stereo matcher).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RgbdFrame {
+    /// 0-based index in the sequence.
+    pub index: usize,
+    /// Timestamp, seconds.
+    pub timestamp_s: f64,
+    /// Reference colour image.
+    pub colour: Rgb8,
+    /// Depth along z, metres; 0 = invalid.
+    pub depth_m: DepthMap,
+    /// Per-pixel depth confidence in [0, 1], when the estimator gives one.
+    pub depth_confidence: Option<GrayF32>,
+    /// Ground-truth pose, if known (for oracle stages and evaluation only).
+    pub gt_t_world_cam: Option<Iso3>,
+    /// Masks of pixels to ignore.
+    pub masks: Masks,
+}
+
+impl RgbdFrame {
+    /// Whether pixel `(x, y)` has valid depth and no mask marks it.
+    pub fn usable(&self, x: usize, y: usize) -> bool {
+        let d = self.depth_m.at(x, y);
+        d > 0.0 && d.is_finite() && !self.masks.ignored(x, y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn union_and_ignored() {
+        let mut m = Masks::new();
+        assert!(m.union().is_none());
+        let mut a = Mask::new(2, 2);
+        *a.at_mut(0, 0) = true;
+        let mut b = Mask::new(2, 2);
+        *b.at_mut(1, 1) = true;
+        m.insert(MASK_SPECULAR, a);
+        m.insert(MASK_OUT_OF_VIEW, b);
+        let u = m.union().unwrap();
+        assert_eq!(u.data(), &[true, false, false, true]);
+        assert!(m.ignored(1, 1) && !m.ignored(1, 0));
+    }
+
+    #[test]
+    fn stereo_iter_mut_visits_both() {
+        let mut v = Views::Stereo { left: Rgb8::new(1, 1), right: Rgb8::new(1, 1) };
+        for img in v.iter_mut() {
+            img.set_pixel(0, 0, [9, 9, 9]);
+        }
+        match v {
+            Views::Stereo { left, right } => assert_eq!(left.pixel(0, 0), right.pixel(0, 0)),
+            Views::Mono(_) => unreachable!(),
+        }
+    }
+}

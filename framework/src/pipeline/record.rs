@@ -1,0 +1,92 @@
+//! What the pipeline records about each frame.
+
+use std::collections::BTreeMap;
+
+use crate::context::StageReport;
+use crate::geometry::Iso3;
+use crate::map::MapStats;
+use crate::stage::{FuseStats, TrackStatus};
+
+/// Wall-clock milliseconds per stage for one frame (0 for a stage that did not run).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTimes {
+    /// All preprocessors together.
+    pub preprocess: f64,
+    /// Depth estimation.
+    pub depth: f64,
+    /// Tracking.
+    pub track: f64,
+    /// Loop closure, including the two predictions it needs.
+    pub loop_close: f64,
+    /// Fusion.
+    pub fuse: f64,
+    /// The active-model prediction for the next frame.
+    pub predict: f64,
+}
+
+impl StageTimes {
+    /// `(column name, value)` pairs, in pipeline order.
+    pub fn named(&self) -> [(&'static str, f64); 6] {
+        [
+            ("preprocess", self.preprocess),
+            ("depth", self.depth),
+            ("track", self.track),
+            ("loop", self.loop_close),
+            ("fuse", self.fuse),
+            ("predict", self.predict),
+        ]
+    }
+}
+
+/// The record of one processed frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameRecord {
+    /// 0-based frame index.
+    pub index: usize,
+    /// Timestamp, seconds.
+    pub timestamp_s: f64,
+    /// Estimated pose (after any loop closure at this frame).
+    pub t_world_cam: Iso3,
+    /// Tracked or lost.
+    pub status: TrackStatus,
+    /// Milliseconds per stage.
+    pub ms: StageTimes,
+    /// Milliseconds for the whole frame.
+    pub total_ms: f64,
+    /// Map counts after the frame.
+    pub map: crate::map::MapStats,
+    /// Fusion counts (zero when not fused).
+    pub fuse: FuseStats,
+    /// Tracker inliers.
+    pub inliers: usize,
+    /// Tracker RMS residual.
+    pub residual_rms: f64,
+    /// Whether a loop closure was applied at this frame.
+    pub loop_closed: bool,
+    /// Counters and warnings per plugin name.
+    pub reports: BTreeMap<String, StageReport>,
+}
+
+impl FrameRecord {
+    pub(crate) fn new(index: usize, timestamp_s: f64) -> Self {
+        Self {
+            index,
+            timestamp_s,
+            t_world_cam: Iso3::identity(),
+            status: TrackStatus::Tracked,
+            ms: StageTimes::default(),
+            total_ms: 0.0,
+            map: MapStats::default(),
+            fuse: FuseStats::default(),
+            inliers: 0,
+            residual_rms: 0.0,
+            loop_closed: false,
+            reports: BTreeMap::new(),
+        }
+    }
+
+    /// Every warning of the frame, prefixed by its plugin's name.
+    pub fn warnings(&self) -> impl Iterator<Item = String> + '_ {
+        self.reports.iter().flat_map(|(name, r)| r.warnings.iter().map(move |w| format!("{name}: {w}")))
+    }
+}

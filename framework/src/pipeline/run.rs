@@ -1,0 +1,75 @@
+//! Runs a pipeline over a dataset, streaming the output. A failure at frame N stops the run
+//! with that error after writing what exists: the trajectory and `frames.csv` up to frame
+//! N − 1, the map and a `summary.json` whose status names the failure.
+
+use crate::error::PipelineError;
+use crate::eval;
+use crate::io::{Dataset, RunWriter, Summary};
+use crate::pipeline::{FrameRecord, Pipeline};
+
+/// Options of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RunOptions {
+    /// Process at most this many frames.
+    pub max_frames: Option<usize>,
+    /// Write `map.ply` at the end.
+    pub write_map: bool,
+}
+
+/// Processes the dataset's frames in order; calls `on_frame` after each.
+pub fn run(
+    dataset: &Dataset,
+    pipeline: &mut Pipeline,
+    writer: &mut RunWriter,
+    opts: &RunOptions,
+    mut on_frame: impl FnMut(&FrameRecord),
+) -> Result<Summary, PipelineError> {
+    let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
+    let mut records = Vec::with_capacity(n);
+    let mut failure: Option<PipelineError> = None;
+    for i in 0..n {
+        let rec = match dataset.load(i) {
+            Ok(frame) => pipeline.process(frame),
+            Err(e) => Err(PipelineError::Load(e)),
+        };
+        match rec {
+            Ok(rec) => {
+                writer.write_frame(&rec)?;
+                on_frame(&rec);
+                records.push(rec);
+            }
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        }
+    }
+
+    if pipeline.loop_closures() > 0 {
+        writer.rewrite_trajectory(pipeline.trajectory())?;
+    }
+    if opts.write_map {
+        match pipeline.snapshot() {
+            Ok(set) => writer.write_map(&set)?,
+            Err(e) if failure.is_none() => {
+                failure = Some(PipelineError::Stage { frame: n, stage: pipeline.resolved_config().pipeline.fuser.clone(), source: e })
+            }
+            Err(_) => {}
+        }
+    }
+    let mut summary = Summary::from_records(&records);
+    summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
+    let gt = dataset.ground_truth();
+    if !gt.is_empty() {
+        let tol = pipeline.resolved_config().input.association_tolerance_s;
+        summary.ate_rmse_m = eval::ate(pipeline.trajectory(), gt, tol, false).map(|a| a.rmse_m);
+    }
+    if let Some(f) = &failure {
+        summary.status = format!("failed: {f}");
+    }
+    writer.write_summary(&summary)?;
+    match failure {
+        Some(e) => Err(e),
+        None => Ok(summary),
+    }
+}

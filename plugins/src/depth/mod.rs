@@ -1,0 +1,3 @@
+//! Depth estimators.
+
+pub mod sensor;

@@ -1,0 +1,65 @@
+//! `sensor`: the oracle depth estimator. Passes the frame's own depth through (an RGB-D
+//! camera's, or the phantom's ground truth), so that tracking and fusion can be measured
+//! without the error of shape from shading.
+
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::{Context, DepthEstimate, DepthEstimator, Plugin, StageError, register};
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of `sensor`.
+    pub struct SensorParams {
+        /// Depths below this are set invalid (0). ElasticFusion hard-codes 0.3 m (room scale);
+        /// a capsule sees tissue from a few millimetres.
+        pub min_depth_m: f64 = 0.001; unit = "m"; range = 0.0..=100.0;
+        /// Depths beyond this are set invalid (ElasticFusion's depthCut, 3 m, is room scale;
+        /// a stomach is 8–20 cm long).
+        pub max_depth_m: f64 = 0.3; unit = "m"; range = 0.0..=100.0;
+    }
+}
+
+/// The oracle depth estimator.
+#[derive(Debug, Clone)]
+pub struct Sensor {
+    params: SensorParams,
+}
+
+impl Plugin for Sensor {
+    const NAME: &'static str = "sensor";
+    const SUMMARY: &'static str = "oracle: the frame's own depth (RGB-D sensor or phantom ground truth), clipped to [min_depth_m, max_depth_m]";
+    type Params = SensorParams;
+
+    fn build(params: SensorParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        if params.min_depth_m >= params.max_depth_m {
+            return Err(StageError::invalid_input(format!("min_depth_m ({}) must be below max_depth_m ({})", params.min_depth_m, params.max_depth_m)));
+        }
+        Ok(Self { params })
+    }
+}
+
+impl DepthEstimator for Sensor {
+    fn estimate(&mut self, frame: &capsule_slam_framework::CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError> {
+        let Some(depth) = &frame.depth_m else {
+            return Err(StageError::invalid_input(format!(
+                "frame {} has no depth image: `sensor` needs an input with depth.txt (RGB-D), or choose a depth estimator that works from the image",
+                frame.index
+            )));
+        };
+        let (lo, hi) = (self.params.min_depth_m as f32, self.params.max_depth_m as f32);
+        let mut out = depth.clone();
+        let mut valid = 0usize;
+        for d in out.data_mut() {
+            if !(d.is_finite() && *d >= lo && *d <= hi) {
+                *d = 0.0;
+            } else {
+                valid += 1;
+            }
+        }
+        ctx.count("valid_pixels", valid as f64);
+        if valid == 0 {
+            ctx.warn(format!("frame {}: no depth within [{lo}, {hi}] m", frame.index));
+        }
+        Ok(DepthEstimate { depth_m: out, confidence: None })
+    }
+}
+
+register!(DepthEstimator, Sensor);

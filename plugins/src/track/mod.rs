@@ -1,0 +1,3 @@
+//! Trackers.
+
+pub mod ground_truth;
