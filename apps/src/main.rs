@@ -3,6 +3,7 @@
 mod cmd_config;
 mod cmd_plugins;
 mod cmd_run;
+mod cmd_synth;
 
 use clap::{Parser, Subcommand};
 
@@ -22,6 +23,8 @@ enum Command {
     Plugins,
     /// Print configuration.
     Config(cmd_config::ConfigArgs),
+    /// Render a synthetic stomach phantom sequence with its ground truth.
+    Synth(cmd_synth::SynthArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -31,6 +34,7 @@ fn main() -> std::process::ExitCode {
         Command::Run(a) => cmd_run::run(&a),
         Command::Plugins => cmd_plugins::run(),
         Command::Config(a) => cmd_config::run(&a),
+        Command::Synth(a) => cmd_synth::run(&a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -62,6 +62,30 @@ pub fn write_depth(path: &Path, depth: &DepthMap, depth_scale: f64) -> Result<()
     buf.save(path).map_err(|e| LoadError::Image { path: path.to_owned(), message: format!("cannot write: {e}") })
 }
 
+/// Writes an 8-bit grey PNG.
+pub fn write_gray(path: &Path, img: &crate::image::Gray8) -> Result<(), LoadError> {
+    let buf: ImageBuffer<Luma<u8>, Vec<u8>> = ImageBuffer::from_raw(img.width() as u32, img.height() as u32, img.data().to_vec())
+        .ok_or_else(|| LoadError::Image { path: path.to_owned(), message: "buffer size mismatch".into() })?;
+    buf.save(path).map_err(|e| LoadError::Image { path: path.to_owned(), message: format!("cannot write: {e}") })
+}
+
+/// Reads an 8-bit grey PNG (any image is converted to grey).
+pub fn read_gray(path: &Path, expected: Option<(usize, usize)>) -> Result<crate::image::Gray8, LoadError> {
+    let img = open(path)?;
+    check_size(path, (img.width(), img.height()), expected)?;
+    let g = img.to_luma8();
+    let (w, h) = (g.width() as usize, g.height() as usize);
+    crate::image::Gray8::from_vec(w, h, g.into_raw()).map_err(|e| LoadError::Image { path: path.to_owned(), message: e.to_string() })
+}
+
+/// Writes a float image as a 16-bit grey PNG (`round(value × scale)`, clamped).
+pub fn write_gray16(path: &Path, img: &crate::image::GrayF32, scale: f64) -> Result<(), LoadError> {
+    let data: Vec<u16> = img.data().iter().map(|v| (f64::from(*v) * scale).round().clamp(0.0, 65535.0) as u16).collect();
+    let buf: ImageBuffer<Luma<u16>, Vec<u16>> = ImageBuffer::from_raw(img.width() as u32, img.height() as u32, data)
+        .ok_or_else(|| LoadError::Image { path: path.to_owned(), message: "buffer size mismatch".into() })?;
+    buf.save(path).map_err(|e| LoadError::Image { path: path.to_owned(), message: format!("cannot write: {e}") })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

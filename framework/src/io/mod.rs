@@ -40,6 +40,27 @@ pub fn write_camera_file(path: &Path, cam: &CameraFile) -> Result<(), LoadError>
     std::fs::write(path, text).map_err(|e| LoadError::io(path, e))
 }
 
+/// Reads a `light.toml`, rejecting unknown keys and invalid values with the file's name.
+pub fn read_light_file(path: &Path) -> Result<crate::light::LightModel, LoadError> {
+    let text = std::fs::read_to_string(path).map_err(|e| LoadError::io(path, e))?;
+    let light: crate::light::LightModel = toml::from_str(&text).map_err(|e| {
+        let line = e.span().map_or(0, |s| text[..s.start.min(text.len())].matches('\n').count() + 1);
+        LoadError::parse(path, line, format!("{} (expected keys: gain, ref_distance_m, ambient, gamma, position_m, spot_exponent, vignetting)", e.message()))
+    })?;
+    if let Some((k, m)) = light.problems().into_iter().next() {
+        return Err(LoadError::parse(path, 0, format!("{k}: {m}")));
+    }
+    Ok(light)
+}
+
+/// Writes a `light.toml` with the model's formula as a header comment.
+pub fn write_light_file(path: &Path, light: &crate::light::LightModel) -> Result<(), LoadError> {
+    let body = toml::to_string(light).map_err(|e| LoadError::parse(path, 0, e.to_string()))?;
+    let header = "# linear pixel = V(u) * albedo * (gain * cos(incidence) * (ref_distance_m / distance_m)^2 * spot + ambient), then gamma-encoded\n\
+                  # V = 1 + v1 r^2 + v2 r^4 (+ v3 r^6), r = pixel distance to (cx, cy) / half-diagonal; spot = cos(angle to the optical axis)^spot_exponent\n";
+    std::fs::write(path, format!("{header}{body}")).map_err(|e| LoadError::io(path, e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,116 @@
+//! `capsule-slam synth`: render a phantom sequence with its ground truth.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context as _, anyhow};
+use capsule_slam_framework::phantom::writer::{contact_sheet, write_sequence};
+use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
+use indicatif::ProgressBar;
+
+/// Arguments of `synth`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct SynthArgs {
+    /// Trajectory preset 1–7 (the paper's Table 3): 1 slow, 2 local revisits, 3 long scan with
+    /// loops, 4 fast motion, 5 very loopy, 6 = 5 with heavy noise, 7 = 5 with heavy reflections
+    /// and fast drift.
+    #[arg(long, default_value_t = 2)]
+    pub preset: u8,
+    /// Number of frames.
+    #[arg(long, default_value_t = 300)]
+    pub frames: usize,
+    /// Image size: naneye (250×250), 320, voyager (720×480), potensic (1280×720).
+    #[arg(long, default_value = "320")]
+    pub size: String,
+    /// Seed of texture and noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Peristaltic wall motion amplitude, mm (0 = rigid).
+    #[arg(long = "deform", value_name = "MM", default_value_t = 0.0)]
+    pub deform_mm: f64,
+    /// Scale of the specular highlights (default: 1, preset 7: 2.5; 0 = none).
+    #[arg(long)]
+    pub specular: Option<f64>,
+    /// Scale of the sensor noise (default: 1, preset 6: 5; 0 = none).
+    #[arg(long)]
+    pub noise: Option<f64>,
+    /// Tissue texture: `tissue` or `none` (uniform albedo, for shape from shading).
+    #[arg(long, default_value = "tissue")]
+    pub texture: String,
+    /// Light offset from the optical centre along camera x, mm.
+    #[arg(long, default_value_t = 0.0)]
+    pub light_offset_mm: f64,
+    /// Motion-blur sub-samples per frame (1 = off).
+    #[arg(long, default_value_t = 1)]
+    pub motion_blur: u32,
+    /// Radial lens distortion k1 (0 = pinhole).
+    #[arg(long, default_value_t = 0.0)]
+    pub distortion_k1: f64,
+    /// Output folder.
+    #[arg(long, default_value = "phantom")]
+    pub out: PathBuf,
+    /// Also write contact_sheet.png with every 30th frame.
+    #[arg(long)]
+    pub contact_sheet: bool,
+    /// No progress bar.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+impl SynthArgs {
+    /// The phantom spec these arguments describe.
+    pub fn spec(&self) -> anyhow::Result<PhantomSpec> {
+        let mut s = PhantomSpec::preset(self.preset);
+        s.frames = self.frames;
+        s.size = SizePreset::parse(&self.size).ok_or_else(|| anyhow!("--size {}: use naneye, 320, voyager or potensic", self.size))?;
+        s.seed = self.seed;
+        s.deform_mm = self.deform_mm;
+        if let Some(v) = self.specular {
+            s.specular = v;
+        }
+        if let Some(v) = self.noise {
+            s.noise = v;
+        }
+        s.texture = match self.texture.as_str() {
+            "tissue" => true,
+            "none" => false,
+            t => return Err(anyhow!("--texture {t}: use tissue or none")),
+        };
+        s.light_offset_mm = self.light_offset_mm;
+        s.motion_blur = self.motion_blur;
+        s.distortion_k1 = self.distortion_k1;
+        Ok(s)
+    }
+}
+
+/// Renders the sequence; returns the phantom and the wall-clock ms per frame.
+pub fn synthesize(spec: PhantomSpec, out: &std::path::Path, quiet: bool) -> anyhow::Result<(Phantom, f64)> {
+    let phantom = Phantom::new(spec).map_err(|e| anyhow!("invalid phantom settings: {e}"))?;
+    let n = phantom.spec.frames;
+    let bar = if quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };
+    let done = AtomicUsize::new(0);
+    let start = Instant::now();
+    write_sequence(&phantom, out, &|_| {
+        done.fetch_add(1, Ordering::Relaxed);
+        bar.inc(1);
+    })
+    .with_context(|| format!("writing the phantom to {}", out.display()))?;
+    bar.finish_and_clear();
+    let ms = start.elapsed().as_secs_f64() * 1e3 / n as f64;
+    Ok((phantom, ms))
+}
+
+pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
+    let spec = args.spec()?;
+    let (phantom, ms) = synthesize(spec, &args.out, args.quiet)?;
+    let n = phantom.spec.frames;
+    if args.contact_sheet {
+        let p = args.out.join("contact_sheet.png");
+        contact_sheet(&args.out, n, 30, &p).with_context(|| format!("writing {}", p.display()))?;
+    }
+    let (w, h) = phantom.spec.size.size();
+    println!("preset {}  {} frames  {w}×{h}  path {:.1} mm  {:.1} ms per frame (incl. writing)", phantom.spec.preset, n, phantom.path_length_m() * 1e3, ms);
+    println!("written to {}", args.out.display());
+    Ok(())
+}
