@@ -3,9 +3,11 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context as _, bail};
+use anyhow::Context as _;
 use capsule_slam_framework::config::Config;
 use capsule_slam_framework::io::{Dataset, RunWriter};
+use capsule_slam_framework::phantom::PhantomSpec;
+use capsule_slam_framework::phantom::writer::is_complete;
 use capsule_slam_framework::pipeline::Pipeline;
 use capsule_slam_framework::pipeline::run::{RunOptions, run as run_pipeline};
 use capsule_slam_framework::registry::BuildEnv;
@@ -54,6 +56,21 @@ fn substitute_oracles(config: &mut Config, registry: &Registry) {
     }
 }
 
+/// The built-in default input: phantom preset 2 at 320×320, 300 frames, generated once into a
+/// cache folder (`$CAPSULE_SLAM_CACHE`, default `.cache/capsule-slam`) and reused.
+fn default_phantom(quiet: bool) -> anyhow::Result<PathBuf> {
+    let spec = PhantomSpec::preset(2);
+    let cache = std::env::var_os("CAPSULE_SLAM_CACHE").map_or_else(|| PathBuf::from(".cache/capsule-slam"), PathBuf::from);
+    let dir = cache.join(format!("phantom-preset{}-320-{}f-seed{}", spec.preset, spec.frames, spec.seed));
+    if is_complete(&dir, &spec) {
+        eprintln!("input: the built-in phantom (preset 2, 320×320, {} frames), cached in {}", spec.frames, dir.display());
+    } else {
+        eprintln!("input: the built-in phantom (preset 2, 320×320, {} frames): generating it into {}", spec.frames, dir.display());
+        crate::cmd_synth::synthesize(spec, &dir, quiet)?;
+    }
+    Ok(dir)
+}
+
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let registry = crate::registry()?;
     let mut config = Config::load(args.config.as_deref(), &args.set)?;
@@ -68,8 +85,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         config.input.max_frames = Some(n);
     }
     substitute_oracles(&mut config, &registry);
-    let Some(input) = config.input.path.clone() else {
-        bail!("no input: give --input DIR (a TUM RGB-D folder or an image folder with camera.toml) or set [input] path in the config");
+    let input = match config.input.path.clone() {
+        Some(p) => p,
+        None => default_phantom(args.quiet)?,
     };
     let dataset = Dataset::open(&input, &config.input, config.camera.as_ref()).with_context(|| format!("opening the input {}", input.display()))?;
     if dataset.dropped_without_depth() > 0 {
@@ -84,7 +102,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let n = config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
-    let opts = RunOptions { max_frames: config.input.max_frames, write_map: config.output.map };
+    let opts = RunOptions { max_frames: config.input.max_frames, write_map: config.output.map, eval_sim3: false };
     let result = run_pipeline(&dataset, &mut pipeline, &mut writer, &opts, |rec| {
         for w in rec.warnings() {
             bar.suspend(|| eprintln!("warning: frame {}: {w}", rec.index));
@@ -100,7 +118,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     println!("surfels           {} ({} active)", summary.surfels, summary.surfels_active);
     println!("loop closures     {}", summary.loop_closures);
     if let Some(a) = summary.ate_rmse_m {
-        println!("ATE RMSE (SE3)    {:.3} mm", a * 1e3);
+        let pct = summary
+            .metrics
+            .get("ate_percent_of_path")
+            .map(|p| format!(" ({p:.3} % of the {:.1} mm path)", summary.metrics.get("path_length_m").copied().unwrap_or(0.0) * 1e3))
+            .unwrap_or_default();
+        println!("ATE RMSE (SE3)    {:.3} mm{pct}", a * 1e3);
+    }
+    if let Some(r) = summary.metrics.get("surface_rmse_m") {
+        let c = summary.metrics.get("surface_completeness_1mm").copied().unwrap_or(0.0);
+        println!("surface RMSE      {:.3} mm ({:.1} % of the seen truth within 1 mm)", r * 1e3, c * 100.0);
     }
     println!("outputs           {}", out.display());
     Ok(())

@@ -1,9 +1,11 @@
 //! `capsule-slam`: the command line of the capsule-slam framework.
 
 mod cmd_config;
+mod cmd_eval;
 mod cmd_plugins;
 mod cmd_run;
 mod cmd_synth;
+mod plot;
 
 use clap::{Parser, Subcommand};
 
@@ -23,6 +25,8 @@ enum Command {
     Plugins,
     /// Print configuration.
     Config(cmd_config::ConfigArgs),
+    /// Trajectory and surface error of an estimate against ground truth.
+    Eval(cmd_eval::EvalArgs),
     /// Render a synthetic stomach phantom sequence with its ground truth.
     Synth(cmd_synth::SynthArgs),
 }
@@ -35,6 +39,7 @@ fn main() -> std::process::ExitCode {
         Command::Plugins => cmd_plugins::run(),
         Command::Config(a) => cmd_config::run(&a),
         Command::Synth(a) => cmd_synth::run(&a),
+        Command::Eval(a) => cmd_eval::run(&a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -21,7 +21,7 @@ fn run_on(dir: &std::path::Path, out: &std::path::Path, cfg: &Config) -> Result<
     let env = BuildEnv::new(ds.rig(), Some(dir.to_owned()));
     let mut p = Pipeline::build(cfg, "test", &registry, &env).unwrap();
     let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
-    run(&ds, &mut p, &mut w, &RunOptions { max_frames: cfg.input.max_frames, write_map: true }, |_| {})
+    run(&ds, &mut p, &mut w, &RunOptions { max_frames: cfg.input.max_frames, write_map: true, eval_sim3: false }, |_| {})
 }
 
 #[test]

@@ -1,11 +1,13 @@
 //! Writes a phantom sequence in the input layout (TUM RGB-D + `camera.toml`) with its ground
 //! truth: `groundtruth.txt`, `gt_surface.ply` (rest shape; with deformation also
-//! `gt_surface_NNNNNN.ply` at the first, middle and last frame), `specular/` masks, `diffuse/`
+//! `gt_surface_NNNNNN.ply` at the first, middle and last frame; the `confidence` of each truth
+//! point counts the frames that saw it, 0 = never observed), `specular/` masks, `diffuse/`
 //! images, `vignetting.png` (16-bit, V × 65535), `light.toml` and `phantom.toml` (the spec,
 //! written last: its presence marks a complete sequence).
 
 use std::io::Write;
 use std::path::Path;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 use rayon::prelude::*;
 
@@ -36,8 +38,13 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
         std::fs::remove_file(&spec_file).map_err(|e| LoadError::io(&spec_file, e))?;
     }
     let n = phantom.spec.frames;
+    let mut rest = phantom.clone();
+    rest.shape.wave_m = 0.0;
+    let mut surface = rest.surface(0.0, SURFACE_SPACING_M);
+    let seen: Vec<AtomicU32> = surface.surfels.iter().map(|_| AtomicU32::new(0)).collect();
     (0..n).into_par_iter().try_for_each(|i| -> Result<(), LoadError> {
         let f = phantom.render(i);
+        mark_visible(phantom, &f, &surface, &seen);
         images::write_rgb(&dir.join(format!("rgb/{i:06}.png")), &f.rgb)?;
         images::write_rgb(&dir.join(format!("diffuse/{i:06}.png")), &f.diffuse)?;
         images::write_depth(&dir.join(format!("depth/{i:06}.png")), &f.depth_m, 5000.0)?;
@@ -67,18 +74,42 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
     let v = phantom.vignetting_field();
     images::write_gray16(&dir.join("vignetting.png"), &v, 65535.0)?;
 
-    let mut rest = phantom.clone();
-    rest.shape.wave_m = 0.0;
-    ply::write_surfels(&dir.join("gt_surface.ply"), &rest.surface(0.0, SURFACE_SPACING_M))?;
+    for (s, c) in surface.surfels.iter_mut().zip(&seen) {
+        s.confidence = c.load(Ordering::Relaxed) as f32;
+    }
+    ply::write_surfels(&dir.join("gt_surface.ply"), &surface)?;
     if phantom.shape.wave_m > 0.0 {
         for i in surface_frames(n) {
-            ply::write_surfels(&dir.join(format!("gt_surface_{i:06}.ply")), &phantom.surface(phantom.time_s(i), SURFACE_SPACING_M))?;
+            let mut at = phantom.surface(phantom.time_s(i), SURFACE_SPACING_M);
+            for (s, r) in at.surfels.iter_mut().zip(&surface.surfels) {
+                s.confidence = r.confidence;
+            }
+            ply::write_surfels(&dir.join(format!("gt_surface_{i:06}.ply")), &at)?;
         }
     }
     let spec_text = toml::to_string(&phantom.spec).map_err(|e| LoadError::parse(&spec_file, 0, e.to_string()))?;
     let mut f = std::fs::File::create(&spec_file).map_err(|e| LoadError::io(&spec_file, e))?;
     writeln!(f, "# capsule-slam phantom: `capsule-slam synth` with these settings reproduces this folder\n{spec_text}")
         .map_err(|e| LoadError::io(&spec_file, e))
+}
+
+/// Counts, for every truth point, whether frame `f` saw it: inside the field of view and within
+/// 1 mm (plus the wave amplitude, as the truth is the rest shape) of the rendered depth.
+fn mark_visible(phantom: &Phantom, f: &super::render::RenderedFrame, surface: &crate::map::SurfelSet, seen: &[AtomicU32]) {
+    let t_cam_world = f.t_world_cam.inverse();
+    let tol = 0.001 + 1.5 * phantom.shape.wave_m;
+    surface.surfels.par_iter().zip(seen).for_each(|(s, c)| {
+        let p = t_cam_world * s.position_m.cast::<f64>();
+        let Some(uv) = phantom.camera.project_distorted(&p) else { return };
+        let (u, v) = (uv.x.round(), uv.y.round());
+        if !phantom.camera.in_fov(u, v) {
+            return;
+        }
+        let d = f64::from(f.depth_m.at(u as usize, v as usize));
+        if d > 0.0 && (d - p.z).abs() < tol {
+            c.fetch_add(1, Ordering::Relaxed);
+        }
+    });
 }
 
 /// Whether `dir` holds a complete sequence of exactly this spec (for caching).

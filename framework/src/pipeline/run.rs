@@ -3,8 +3,8 @@
 //! N − 1, the map and a `summary.json` whose status names the failure.
 
 use crate::error::PipelineError;
-use crate::eval;
-use crate::io::{Dataset, RunWriter, Summary};
+use crate::eval::report::{EvalOptions, evaluate};
+use crate::io::{Dataset, RunWriter, Summary, ply};
 use crate::pipeline::{FrameRecord, Pipeline};
 
 /// Options of a run.
@@ -14,7 +14,12 @@ pub struct RunOptions {
     pub max_frames: Option<usize>,
     /// Write `map.ply` at the end.
     pub write_map: bool,
+    /// Headline figures aligned with scale (monocular runs).
+    pub eval_sim3: bool,
 }
+
+/// The ground-truth surface of an input folder, when it has one.
+pub const GT_SURFACE_FILE: &str = "gt_surface.ply";
 
 /// Processes the dataset's frames in order; calls `on_frame` after each.
 pub fn run(
@@ -48,21 +53,31 @@ pub fn run(
     if pipeline.loop_closures() > 0 {
         writer.rewrite_trajectory(pipeline.trajectory())?;
     }
-    if opts.write_map {
-        match pipeline.snapshot() {
-            Ok(set) => writer.write_map(&set)?,
-            Err(e) if failure.is_none() => {
-                failure = Some(PipelineError::Stage { frame: n, stage: pipeline.resolved_config().pipeline.fuser.clone(), source: e })
+    let map = match pipeline.snapshot() {
+        Ok(set) => Some(set),
+        Err(e) => {
+            if failure.is_none() {
+                failure = Some(PipelineError::Stage { frame: n, stage: pipeline.resolved_config().pipeline.fuser.clone(), source: e });
             }
-            Err(_) => {}
+            None
         }
+    };
+    if let (true, Some(set)) = (opts.write_map, &map) {
+        writer.write_map(set)?;
     }
     let mut summary = Summary::from_records(&records);
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
     let gt = dataset.ground_truth();
-    if !gt.is_empty() {
-        let tol = pipeline.resolved_config().input.association_tolerance_s;
-        summary.ate_rmse_m = eval::ate(pipeline.trajectory(), gt, tol, false).map(|a| a.rmse_m);
+    if !gt.is_empty() && !records.is_empty() {
+        let truth_file = dataset.dir().join(GT_SURFACE_FILE);
+        let truth = if truth_file.exists() { Some(ply::read_surfels(&truth_file)?) } else { None };
+        let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
+        let surfaces = match (&map, &truth) {
+            (Some(m), Some(t)) if !m.is_empty() => Some((m, t)),
+            _ => None,
+        };
+        summary.metrics = evaluate(pipeline.trajectory(), gt, surfaces, &eval_opts);
+        summary.ate_rmse_m = summary.metrics.remove("ate_rmse_m");
     }
     if let Some(f) = &failure {
         summary.status = format!("failed: {f}");
