@@ -13,7 +13,8 @@ use crate::geometry::{Iso3, StampedPose};
 pub enum Delta {
     /// Every `n`-th pose (evo's `--delta n --delta_unit f`; consecutive, non-overlapping pairs).
     Frames(usize),
-    /// Pairs a travelled path of this many metres apart (evo's `--delta_unit m`).
+    /// Pairs a travelled path of this many metres apart, starting at the first pose (evo's
+    /// `--delta_unit m`, v1.38).
     Metres(f64),
 }
 
@@ -35,12 +36,11 @@ pub fn pairs(poses: &[Iso3], delta: Delta) -> Vec<(usize, usize)> {
     let ids: Vec<usize> = match delta {
         Delta::Frames(n) => (0..poses.len()).step_by(n.max(1)).collect(),
         Delta::Metres(d) => {
-            let mut ids = Vec::new();
+            // The first pose always starts a pair (evo ≥ 1.30).
+            let mut ids = vec![0];
             let mut path = 0.0;
-            for i in 0..poses.len() {
-                if i > 0 {
-                    path += (poses[i].translation.vector - poses[i - 1].translation.vector).norm();
-                }
+            for i in 1..poses.len() {
+                path += (poses[i].translation.vector - poses[i - 1].translation.vector).norm();
                 if path >= d {
                     ids.push(i);
                     path = 0.0;
@@ -108,7 +108,7 @@ mod tests {
     #[test]
     fn path_pairs_follow_the_travelled_distance() {
         let poses: Vec<Iso3> = (0..11).map(|i| Iso3::translation(0.1 * i as f64, 0.0, 0.0)).collect();
-        assert_eq!(pairs(&poses, Delta::Metres(0.25)), vec![(3, 6), (6, 9)]);
+        assert_eq!(pairs(&poses, Delta::Metres(0.25)), vec![(0, 3), (3, 6), (6, 9)]);
         assert_eq!(pairs(&poses, Delta::Frames(5)), vec![(0, 5), (5, 10)]);
     }
 }

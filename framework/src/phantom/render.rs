@@ -37,6 +37,14 @@ pub struct RenderedFrame {
     pub depth_m: DepthMap,
 }
 
+/// One rendered image row: colour, diffuse-only colour, specular mask, depth.
+struct Row {
+    rgb: Vec<u8>,
+    dif: Vec<u8>,
+    spec: Vec<bool>,
+    depth: Vec<f32>,
+}
+
 /// Linear radiance of one pixel.
 #[derive(Debug, Clone, Copy, Default)]
 struct Sample {
@@ -99,7 +107,7 @@ impl Phantom {
             .collect();
         let seed = self.spec.seed;
         let noise = self.spec.noise;
-        let rows: Vec<(Vec<u8>, Vec<u8>, Vec<bool>, Vec<f32>)> = (0..h)
+        let rows: Vec<Row> = (0..h)
             .into_par_iter()
             .map(|y| {
                 let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(seed.wrapping_mul(0x9E37_79B9).wrapping_add((i as u64) << 20).wrapping_add(y as u64));
@@ -130,7 +138,7 @@ impl Phantom {
                         dif[3 * x + c] = to_u8(self.light.encode(lin + n));
                     }
                 }
-                (rgb, dif, spec, depth)
+                Row { rgb, dif, spec, depth }
             })
             .collect();
         let mut out = RenderedFrame {
@@ -142,7 +150,7 @@ impl Phantom {
             specular: Mask::new(w, h),
             depth_m: DepthMap::new(w, h),
         };
-        for (y, (rgb, dif, spec, depth)) in rows.into_iter().enumerate() {
+        for (y, Row { rgb, dif, spec, depth }) in rows.into_iter().enumerate() {
             out.rgb.data_mut()[y * w * 3..(y + 1) * w * 3].copy_from_slice(&rgb);
             out.diffuse.data_mut()[y * w * 3..(y + 1) * w * 3].copy_from_slice(&dif);
             out.specular.data_mut()[y * w..(y + 1) * w].copy_from_slice(&spec);
