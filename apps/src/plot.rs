@@ -36,17 +36,21 @@ fn view(path: &Path, title: &str, est: &[(f64, f64)], gt: &[(f64, f64)], labels:
     Ok(())
 }
 
+/// A 2-D series of the estimate and of the ground truth.
+type Series = Vec<(f64, f64)>;
+
+fn project(pairs: &[(StampedPose, StampedPose)], f: &dyn Fn(&StampedPose) -> (f64, f64)) -> (Series, Series) {
+    (pairs.iter().map(|(e, _)| f(e)).collect(), pairs.iter().map(|(_, g)| f(g)).collect())
+}
+
 /// Writes `trajectory_top.png`, `trajectory_side.png` and `ate_over_time.png` into `dir`.
 /// `pairs` are (aligned estimate, ground truth) matched by timestamp; positions in mm.
 pub fn plot(dir: &Path, pairs: &[(StampedPose, StampedPose)]) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mm = |p: &StampedPose| p.t_world_cam.translation.vector * 1e3;
-    let top = |f: &dyn Fn(&StampedPose) -> (f64, f64)| -> (Vec<(f64, f64)>, Vec<(f64, f64)>) {
-        (pairs.iter().map(|(e, _)| f(e)).collect(), pairs.iter().map(|(_, g)| f(g)).collect())
-    };
-    let (e, g) = top(&|p| (mm(p).x, mm(p).y));
+    let (e, g) = project(pairs, &|p| (mm(p).x, mm(p).y));
     view(&dir.join("trajectory_top.png"), "trajectory, top view (x–y)", &e, &g, ("x [mm]", "y [mm]")).context("plotting the top view")?;
-    let (e, g) = top(&|p| (mm(p).x, mm(p).z));
+    let (e, g) = project(pairs, &|p| (mm(p).x, mm(p).z));
     view(&dir.join("trajectory_side.png"), "trajectory, side view (x–z)", &e, &g, ("x [mm]", "z [mm]")).context("plotting the side view")?;
 
     let t0 = pairs.first().map_or(0.0, |p| p.1.timestamp_s);
