@@ -4,8 +4,13 @@
 //! `register!` line at its end. Binaries and tests call [`link`] so that the linker keeps this
 //! crate (and its registrations).
 
+pub mod common;
 pub mod depth;
+pub mod fuse;
 pub mod track;
+
+#[cfg(test)]
+pub(crate) mod testing;
 
 /// Forces the linker to keep this crate's inventory registrations. Call it once from every
 /// binary or test that builds a registry.

@@ -1,0 +1,159 @@
+//! Vertex and normal maps (camera frame) from a depth map.
+
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::frame::Masks;
+use capsule_slam_framework::{DepthMap, Image};
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+/// Camera-frame points, one per pixel; z = 0 where invalid.
+pub type VertexMap = Image<f32, 3>;
+/// Camera-frame unit normals pointing toward the camera; zero where invalid.
+pub type NormalMap = Image<f32, 3>;
+
+/// Depth with masked pixels (specular, out of view, ...) and values outside
+/// `[min_m, max_m]` set invalid (0).
+pub fn usable_depth(depth: &DepthMap, masks: &Masks, min_m: f32, max_m: f32) -> DepthMap {
+    let union = masks.union();
+    let mut out = depth.clone();
+    for (k, d) in out.data_mut().iter_mut().enumerate() {
+        let masked = union.as_ref().is_some_and(|m| m.data()[k]);
+        if masked || !d.is_finite() || *d < min_m || *d > max_m {
+            *d = 0.0;
+        }
+    }
+    out
+}
+
+/// Edge-preserving smoothing of depth (ElasticFusion's bilateral filter, with organ-scale
+/// range σ): a `(2 radius + 1)²` window, spatial σ in pixels, range σ in metres; invalid
+/// pixels stay invalid and are never averaged in.
+pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sigma_range_m: f32) -> DepthMap {
+    let (w, h) = depth.size();
+    let r = radius as i64;
+    let inv_s = -0.5 / (sigma_space_px * sigma_space_px);
+    let inv_r = -0.5 / (sigma_range_m * sigma_range_m);
+    let mut out = DepthMap::new(w, h);
+    out.data_mut().par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
+        for x in 0..w {
+            let c = depth.at(x, y);
+            if c <= 0.0 {
+                continue;
+            }
+            let (mut sum, mut wsum) = (0.0f32, 0.0f32);
+            for dy in -r..=r {
+                let yy = y as i64 + dy;
+                if yy < 0 || yy >= h as i64 {
+                    continue;
+                }
+                for dx in -r..=r {
+                    let xx = x as i64 + dx;
+                    if xx < 0 || xx >= w as i64 {
+                        continue;
+                    }
+                    let d = depth.at(xx as usize, yy as usize);
+                    if d <= 0.0 {
+                        continue;
+                    }
+                    let wgt = (((dx * dx + dy * dy) as f32) * inv_s + (d - c) * (d - c) * inv_r).exp();
+                    sum += wgt * d;
+                    wsum += wgt;
+                }
+            }
+            row[x] = sum / wsum;
+        }
+    });
+    out
+}
+
+/// Back-projects every valid pixel: `v = K⁻¹ [u v 1]ᵀ d` (the paper's p(u, D)).
+pub fn vertex_map(depth: &DepthMap, cam: &PinholeCamera) -> VertexMap {
+    let (w, h) = depth.size();
+    VertexMap::from_fn(w, h, |x, y| {
+        let d = depth.at(x, y);
+        if d <= 0.0 {
+            return [0.0; 3];
+        }
+        let p = cam.unproject(x as f64, y as f64, f64::from(d));
+        [p.x as f32, p.y as f32, p.z as f32]
+    })
+}
+
+/// The vertex at pixel (x, y), if valid.
+pub fn vertex(v: &VertexMap, x: usize, y: usize) -> Option<Vector3<f32>> {
+    let p = v.pixel(x, y);
+    (p[2] > 0.0).then(|| Vector3::new(p[0], p[1], p[2]))
+}
+
+/// Normals by central differences over `step` pixels: `n = −normalize((v₊ₓ − v₋ₓ) × (v₊ᵧ − v₋ᵧ))`,
+/// oriented toward the camera; zero where a neighbour is invalid or the neighbours are more
+/// than `max_jump_m` apart in depth (a depth edge).
+pub fn normal_map(v: &VertexMap, step: usize, max_jump_m: f32) -> NormalMap {
+    let (w, h) = v.size();
+    NormalMap::from_fn(w, h, |x, y| {
+        if x < step || y < step || x + step >= w || y + step >= h {
+            return [0.0; 3];
+        }
+        let (Some(c), Some(l), Some(r), Some(u), Some(d)) =
+            (vertex(v, x, y), vertex(v, x - step, y), vertex(v, x + step, y), vertex(v, x, y - step), vertex(v, x, y + step))
+        else {
+            return [0.0; 3];
+        };
+        if [l, r, u, d].iter().any(|q| (q.z - c.z).abs() > max_jump_m) {
+            return [0.0; 3];
+        }
+        let n = (r - l).cross(&(d - u));
+        let len = n.norm();
+        if len <= 0.0 {
+            return [0.0; 3];
+        }
+        let mut n = -n / len;
+        if n.dot(&c) > 0.0 {
+            n = -n;
+        }
+        [n.x, n.y, n.z]
+    })
+}
+
+/// The normal at pixel (x, y), if valid.
+pub fn normal(n: &NormalMap, x: usize, y: usize) -> Option<Vector3<f32>> {
+    let p = n.pixel(x, y);
+    (p != [0.0; 3]).then(|| Vector3::new(p[0], p[1], p[2]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cam() -> PinholeCamera {
+        PinholeCamera::new(64, 48, 50.0, 50.0, 31.5, 23.5)
+    }
+
+    #[test]
+    fn a_tilted_plane_gives_its_normal_and_faces_the_camera() {
+        // Plane through (0, 0, 0.04) with normal (0.3, 0, −1)/|.|, toward the camera.
+        let n_true = Vector3::new(0.3f64, 0.0, -1.0).normalize();
+        let c = cam();
+        let depth = DepthMap::from_fn(64, 48, |x, y| {
+            let ray = Vector3::new((x as f64 - c.cx) / c.fx, (y as f64 - c.cy) / c.fy, 1.0);
+            let t = n_true.dot(&Vector3::new(0.0, 0.0, 0.04)) / n_true.dot(&ray);
+            [t as f32]
+        });
+        let v = vertex_map(&depth, &c);
+        let n = normal_map(&v, 1, 0.01);
+        let got = normal(&n, 30, 20).unwrap().cast::<f64>();
+        assert!((got - n_true).norm() < 1e-4, "{got}");
+        assert!(normal(&n, 0, 0).is_none());
+    }
+
+    #[test]
+    fn bilateral_keeps_edges_and_smooths_noise() {
+        let depth = DepthMap::from_fn(32, 32, |x, y| [if x < 16 { 0.03 + if (x + y) % 2 == 0 { 0.0002 } else { -0.0002 } } else { 0.05 }]);
+        let f = bilateral_depth(&depth, 2, 2.0, 0.001);
+        assert!((f.at(8, 8) - 0.03).abs() < 0.00005, "{}", f.at(8, 8));
+        assert!((f.at(15, 8) - 0.03).abs() < 0.0003 && (f.at(16, 8) - 0.05).abs() < 1e-6, "edge kept");
+        let mut holes = depth.clone();
+        *holes.at_mut(5, 5) = 0.0;
+        assert_eq!(bilateral_depth(&holes, 2, 2.0, 0.001).at(5, 5), 0.0);
+    }
+}

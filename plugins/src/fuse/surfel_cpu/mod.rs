@@ -1,0 +1,247 @@
+//! `surfel-cpu`: the surfel map on the CPU (rayon), after Keller et al. 2013 and ElasticFusion
+//! (Whelan et al. 2016), as the paper uses it (Sec. 3.3): surfels with position, normal,
+//! colour, confidence, radius, t0 and t; projective association of each measurement against
+//! an index map of the active model (depth gate along the ray, normal gate, the candidate
+//! nearest the pixel ray wins); confidence-weighted averaging; stable surfels at
+//! `stable_confidence`; stale unstable surfels removed; active/inactive split by `delta_t`.
+//!
+//! Deviations from ElasticFusion, on purpose: every metric gate is an organ-scale parameter;
+//! the confidence normaliser is the image half-diagonal, not 400 px; positions come from the
+//! raw depth and normals from bilateral-filtered depth, as in ElasticFusion.
+
+mod splat;
+
+use capsule_slam_framework::frame::RgbdFrame;
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::stage::{FuseStats, LoopClosure};
+use capsule_slam_framework::{Context, Fuser, Iso3, MapStats, ModelSet, ModelView, Plugin, StageError, Surfel, SurfelSet, register};
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+
+use super::surfel_rules::{Measurement, confidence, depth_gate, merge, normal_gate, radius};
+use crate::common::maps::{bilateral_depth, normal, normal_map, usable_depth, vertex, vertex_map};
+pub use splat::{IndexMap, predict};
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of `surfel-cpu`.
+    pub struct SurfelCpuParams {
+        /// Active time window δt: a surfel is active iff now − t ≤ δt (ElasticFusion: 200).
+        pub delta_t: u32 = 200; unit = "frames"; range = 1.0..=1.0e7;
+        /// Confidence at which a surfel becomes stable and is predicted (ElasticFusion: 10).
+        pub stable_confidence: f32 = 10.0; unit = "-"; range = 0.0..=1.0e6;
+        /// Unstable surfels not seen for this long are removed (ElasticFusion: 20).
+        pub unstable_lifetime: u32 = 20; unit = "frames"; range = 1.0..=1.0e7;
+        /// Association depth gate along the ray (ElasticFusion: 0.05 m, room scale).
+        pub depth_gate_m: f32 = 0.002; unit = "m"; range = 0.0..=10.0;
+        /// Association normal gate (ElasticFusion: 0.5 rad).
+        pub normal_gate_rad: f32 = 0.5; unit = "rad"; range = 0.0..=3.15;
+        /// Model normals with |n_z| below this skip the normal gate (ElasticFusion: 0.75).
+        pub normal_bypass_nz: f32 = 0.75; unit = "-"; range = 0.0..=1.0;
+        /// A measurement updates position and normal only if its radius is below this × the
+        /// surfel's (ElasticFusion: 1.5).
+        pub radius_ratio: f32 = 1.5; unit = "-"; range = 0.0..=100.0;
+        /// Depths nearer than this are ignored (ElasticFusion: 0.3 m, room scale).
+        pub min_depth_m: f32 = 0.002; unit = "m"; range = 0.0..=100.0;
+        /// Depths beyond this are ignored (ElasticFusion: depthCut 3 m, room scale).
+        pub max_depth_m: f32 = 0.25; unit = "m"; range = 0.0..=100.0;
+        /// Fuse one pixel in `subsample`² per frame, rotating with the frame index
+        /// (ElasticFusion: 2; 1 fuses every pixel).
+        pub subsample: u32 = 2; unit = "px"; range = 1.0..=8.0;
+        /// Bilateral filter for normals: spatial σ (ElasticFusion: 4.5 px in a 13×13 window).
+        pub bilateral_sigma_px: f32 = 2.0; unit = "px"; range = 0.1..=20.0;
+        /// Bilateral filter for normals: range σ (ElasticFusion: 0.03 m, room scale).
+        pub bilateral_sigma_m: f32 = 0.0008; unit = "m"; range = 1.0e-6..=10.0;
+        /// Depth step between neighbours above which no normal is computed (a depth edge).
+        pub edge_jump_m: f32 = 0.003; unit = "m"; range = 0.0..=10.0;
+    }
+}
+
+/// The CPU surfel map.
+pub struct SurfelCpu {
+    params: SurfelCpuParams,
+    surfels: Vec<Surfel>,
+    now: u32,
+}
+
+impl Plugin for SurfelCpu {
+    const NAME: &'static str = "surfel-cpu";
+    const SUMMARY: &'static str =
+        "surfel map on the CPU: projective association, confidence-weighted fusion, active/inactive split (Keller 2013, ElasticFusion)";
+    type Params = SurfelCpuParams;
+
+    fn build(params: SurfelCpuParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        if params.min_depth_m >= params.max_depth_m {
+            return Err(StageError::invalid_input(format!("min_depth_m ({}) must be below max_depth_m ({})", params.min_depth_m, params.max_depth_m)));
+        }
+        Ok(Self { params, surfels: Vec::new(), now: 0 })
+    }
+}
+
+/// What one pixel's measurement does.
+enum Action {
+    Merge(u32, Measurement),
+    Add(Measurement),
+}
+
+impl SurfelCpu {
+    /// The surfels, in creation order.
+    pub fn surfels(&self) -> &[Surfel] {
+        &self.surfels
+    }
+
+    fn is_active(&self, s: &Surfel, now: u32) -> bool {
+        s.is_active(now, self.params.delta_t)
+    }
+
+    /// Measurements of one frame and what to do with each.
+    fn associate(&self, frame: &RgbdFrame, t_world_cam: &Iso3, ctx: &Context) -> Vec<Action> {
+        let p = &self.params;
+        let cam = ctx.rig.camera();
+        let raw = usable_depth(&frame.depth_m, &frame.masks, p.min_depth_m, p.max_depth_m);
+        let smooth = bilateral_depth(&raw, 2, p.bilateral_sigma_px, p.bilateral_sigma_m);
+        let v_raw = vertex_map(&raw, cam);
+        let n_map = normal_map(&vertex_map(&smooth, cam), 1, p.edge_jump_m);
+        let now = self.now;
+        let index = IndexMap::render(&self.surfels, |s| self.is_active(s, now), cam, t_world_cam, p.max_depth_m);
+        let (w, h) = raw.size();
+        let step = p.subsample as usize;
+        let phase = (frame.index % step.max(1)) as usize;
+        let half_diag = cam.half_diagonal_px() as f32;
+        let f_mean = (0.5 * (cam.fx + cam.fy)) as f32;
+        let t = t_world_cam.cast::<f32>();
+        (0..h)
+            .into_par_iter()
+            .filter(|y| y % step == phase)
+            .map(|y| {
+                let mut out = Vec::new();
+                for x in (phase..w).step_by(step) {
+                    let (Some(v), Some(n)) = (vertex(&v_raw, x, y), normal(&n_map, x, y)) else { continue };
+                    let ray = Vector3::new((x as f32 - cam.cx as f32) / cam.fx as f32, (y as f32 - cam.cy as f32) / cam.fy as f32, 1.0);
+                    let lambda = ray.norm();
+                    let ray_unit = ray / lambda;
+                    let rho = ((x as f32 - cam.cx as f32).powi(2) + (y as f32 - cam.cy as f32).powi(2)).sqrt();
+                    let m = Measurement {
+                        position_m: t * Point3::from(v),
+                        normal: t.rotation * n,
+                        colour: frame.colour.pixel(x, y),
+                        confidence: confidence(rho, half_diag),
+                        radius_m: radius(v.z, f_mean, n.z),
+                    };
+                    // Candidates: the index map's 3×3 neighbourhood.
+                    let mut best: Option<(f32, u32)> = None;
+                    for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                        for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                            let k = yy * index.width + xx;
+                            let i = index.index[k];
+                            if i == u32::MAX {
+                                continue;
+                            }
+                            let (pm, nm) = (index.p_cam[k], index.n_cam[k]);
+                            if !depth_gate(pm.z, v.z, lambda, p.depth_gate_m) || !normal_gate(&nm, &n, p.normal_gate_rad, p.normal_bypass_nz) {
+                                continue;
+                            }
+                            let perp = (pm.coords - ray_unit * pm.coords.dot(&ray_unit)).norm();
+                            if best.is_none_or(|(d, _)| perp < d) {
+                                best = Some((perp, i));
+                            }
+                        }
+                    }
+                    out.push(match best {
+                        Some((_, i)) => Action::Merge(i, m),
+                        None => Action::Add(m),
+                    });
+                }
+                out
+            })
+            .flatten_iter()
+            .collect()
+    }
+}
+
+impl Fuser for SurfelCpu {
+    fn fuse(&mut self, frame: &RgbdFrame, t_world_cam: &Iso3, ctx: &mut Context) -> Result<FuseStats, StageError> {
+        self.now = frame.index as u32;
+        let now = self.now;
+        let actions = self.associate(frame, t_world_cam, ctx);
+        // One update per surfel per frame: the last in pixel order wins (ElasticFusion).
+        let mut update: Vec<Option<usize>> = vec![None; self.surfels.len()];
+        let mut added = Vec::new();
+        for (k, a) in actions.iter().enumerate() {
+            match a {
+                Action::Merge(i, _) => update[*i as usize] = Some(k),
+                Action::Add(m) => added.push(m.to_surfel(now)),
+            }
+        }
+        let ratio = self.params.radius_ratio;
+        let merged = update.iter().filter(|u| u.is_some()).count();
+        self.surfels.par_iter_mut().zip(update.par_iter()).for_each(|(s, u)| {
+            if let Some(Action::Merge(_, m)) = u.map(|k| &actions[k]) {
+                merge(s, m, now, ratio);
+            }
+        });
+        let n_added = added.len();
+        self.surfels.extend(added);
+        // Stale unstable surfels go (ElasticFusion's clean pass, removal rule 3).
+        let before = self.surfels.len();
+        let (stable, life) = (self.params.stable_confidence, self.params.unstable_lifetime);
+        self.surfels.retain(|s| s.confidence >= stable || now.saturating_sub(s.t) <= life);
+        let removed = before - self.surfels.len();
+        ctx.count("surfels_merged", merged as f64);
+        ctx.count("surfels_added", n_added as f64);
+        ctx.count("surfels_removed", removed as f64);
+        Ok(FuseStats { merged, added: n_added, removed })
+    }
+
+    fn predict(&mut self, t_world_cam: &Iso3, set: ModelSet, ctx: &mut Context) -> Result<ModelView, StageError> {
+        let now = (ctx.frame_index as u32).max(self.now);
+        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
+        let include = |s: &Surfel| s.confidence >= stable && (s.is_active(now, dt) == (set == ModelSet::Active));
+        Ok(predict(&self.surfels, include, ctx.rig.camera(), t_world_cam, self.params.min_depth_m, self.params.max_depth_m))
+    }
+
+    fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {
+        let d = &closure.deformation;
+        self.surfels.par_iter_mut().for_each(|s| {
+            let p = s.position_m.cast::<f64>();
+            let infl = d.influences(&p);
+            s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
+            s.position_m = d.warp_with(&p, &infl).cast();
+        });
+        // Reactivate the stable inactive surfels seen from the corrected pose.
+        let now = (ctx.frame_index as u32).max(self.now);
+        let cam = ctx.rig.camera();
+        let t_cam_world = closure.t_world_cam.inverse().cast::<f32>();
+        let (stable, dt, lo, hi) = (self.params.stable_confidence, self.params.delta_t, self.params.min_depth_m, self.params.max_depth_m);
+        let mut reactivated = 0usize;
+        for s in &mut self.surfels {
+            if s.confidence < stable || s.is_active(now, dt) {
+                continue;
+            }
+            let p = t_cam_world * s.position_m;
+            if p.z > lo && p.z < hi && cam.project(&p.cast()).is_some_and(|uv| cam.in_fov(uv.x, uv.y)) {
+                s.t = now;
+                reactivated += 1;
+            }
+        }
+        ctx.count("surfels_reactivated", reactivated as f64);
+        Ok(())
+    }
+
+    fn stats(&self) -> MapStats {
+        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
+        MapStats {
+            total: self.surfels.len(),
+            active: self.surfels.iter().filter(|s| s.is_active(self.now, dt)).count(),
+            stable: self.surfels.iter().filter(|s| s.confidence >= stable).count(),
+        }
+    }
+
+    fn snapshot(&self) -> Result<SurfelSet, StageError> {
+        Ok(SurfelSet::new(self.surfels.clone()))
+    }
+}
+
+register!(Fuser, SurfelCpu);
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,100 @@
+use capsule_slam_framework::context::StageReport;
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::{Context, Fuser, ModelSet, Plugin};
+
+use super::{SurfelCpu, SurfelCpuParams};
+use crate::testing::{phantom, rgbd, rig};
+
+fn fuser(p: SurfelCpuParams, ph: &capsule_slam_framework::phantom::Phantom) -> SurfelCpu {
+    SurfelCpu::build(p, &BuildEnv::new(rig(ph), None)).unwrap()
+}
+
+#[test]
+fn fusing_the_same_frame_twice_adds_no_surfels() {
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let f = rgbd(&ph, 3);
+    let pose = f.gt_t_world_cam.unwrap();
+    let mut s = fuser(SurfelCpuParams::default(), &ph);
+    let mut r = StageReport::default();
+    let first = s.fuse(&f, &pose, &mut Context::new(3, &rig, None, &mut r)).unwrap();
+    assert!(first.added > 5000, "{first:?}");
+    let second = s.fuse(&f, &pose, &mut Context::new(3, &rig, None, &mut r)).unwrap();
+    assert_eq!(second.added, 0, "{second:?}");
+    assert_eq!(second.merged, first.added);
+}
+
+#[test]
+fn predicting_a_fused_frame_from_its_pose_reproduces_its_depth() {
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let f = rgbd(&ph, 4);
+    let pose = f.gt_t_world_cam.unwrap();
+    let mut s = fuser(SurfelCpuParams { stable_confidence: 0.0, subsample: 1, ..SurfelCpuParams::default() }, &ph);
+    let mut r = StageReport::default();
+    s.fuse(&f, &pose, &mut Context::new(4, &rig, None, &mut r)).unwrap();
+    let view = s.predict(&pose, ModelSet::Active, &mut Context::new(4, &rig, None, &mut r)).unwrap();
+    let mut err: Vec<f32> = Vec::new();
+    let mut valid = 0;
+    for (p, t) in view.depth_m.data().iter().zip(f.depth_m.data()) {
+        if *t > 0.0 {
+            valid += 1;
+            if *p > 0.0 {
+                err.push((p - t).abs());
+            }
+        }
+    }
+    err.sort_by(f32::total_cmp);
+    assert!(err.len() as f64 > 0.95 * valid as f64, "coverage {} of {valid}", err.len());
+    let median = err[err.len() / 2];
+    assert!(median < 1e-4, "median depth error {median}");
+}
+
+#[test]
+fn the_active_split_follows_delta_t_and_stale_unstable_surfels_go() {
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let f = rgbd(&ph, 0);
+    let pose = f.gt_t_world_cam.unwrap();
+    let mut s = fuser(SurfelCpuParams { stable_confidence: 0.0, delta_t: 50, ..SurfelCpuParams::default() }, &ph);
+    let mut r = StageReport::default();
+    s.fuse(&f, &pose, &mut Context::new(0, &rig, None, &mut r)).unwrap();
+    let n = s.stats().total;
+    let active_at = |s: &mut SurfelCpu, now: usize, set| {
+        let mut r = StageReport::default();
+        s.predict(&pose, set, &mut Context::new(now, &rig, None, &mut r)).unwrap().valid_pixels()
+    };
+    assert!(active_at(&mut s, 50, ModelSet::Active) > 1000);
+    assert_eq!(active_at(&mut s, 50, ModelSet::Inactive), 0);
+    assert_eq!(active_at(&mut s, 51, ModelSet::Active), 0);
+    assert!(active_at(&mut s, 51, ModelSet::Inactive) > 1000);
+
+    // With the default threshold these surfels are unstable; unseen for 21 frames they go.
+    let mut u = fuser(SurfelCpuParams::default(), &ph);
+    u.fuse(&f, &pose, &mut Context::new(0, &rig, None, &mut r)).unwrap();
+    assert_eq!(u.stats().total, n);
+    let mut empty = f.clone();
+    empty.index = 20;
+    empty.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.0);
+    u.fuse(&empty, &pose, &mut Context::new(20, &rig, None, &mut r)).unwrap();
+    assert_eq!(u.stats().total, n, "20 frames unseen: kept");
+    empty.index = 21;
+    u.fuse(&empty, &pose, &mut Context::new(21, &rig, None, &mut r)).unwrap();
+    assert_eq!(u.stats().total, 0, "21 frames unseen: removed");
+}
+
+#[test]
+fn fused_surfels_lie_on_the_phantom_wall() {
+    let ph = phantom(2, 30, 0.0);
+    let rig = rig(&ph);
+    let mut s = fuser(SurfelCpuParams::default(), &ph);
+    let mut r = StageReport::default();
+    for i in 0..6 {
+        let f = rgbd(&ph, i);
+        s.fuse(&f, &f.gt_t_world_cam.unwrap(), &mut Context::new(i, &rig, None, &mut r)).unwrap();
+    }
+    let mut d: Vec<f64> = s.surfels().iter().map(|x| ph.shape.implicit(&x.position_m.cast(), 0.0).abs()).collect();
+    d.sort_by(f64::total_cmp);
+    assert!(d[d.len() / 2] < 1e-4, "median distance to the wall {}", d[d.len() / 2]);
+    assert!(d[d.len() * 95 / 100] < 5e-4, "95th percentile {}", d[d.len() * 95 / 100]);
+}

@@ -1,0 +1,123 @@
+//! The surfel rules as pure functions, shared by every surfel fuser (a GPU fuser mirrors them
+//! line for line). Sources: Keller et al. 2013, "Real-time 3D reconstruction in dynamic scenes
+//! using point-based fusion" (3DV), and ElasticFusion's shaders (Whelan et al. 2016, IJRR,
+//! doi:10.1177/0278364916669237) as digested in `shared/design/elasticfusion.md` §3.
+
+use capsule_slam_framework::Surfel;
+use nalgebra::{Point3, Vector3};
+
+/// Confidence of a new measurement from its pixel's distance to the principal point:
+/// `α = exp(−(ρ / ρ_max)² / (2 · 0.6²))`, ρ_max the image half-diagonal (ElasticFusion
+/// hard-codes 400 px, the half-diagonal of 640×480).
+pub fn confidence(dist_to_centre_px: f32, half_diagonal_px: f32) -> f32 {
+    let r = dist_to_centre_px / half_diagonal_px;
+    (-(r * r) / 0.72).exp()
+}
+
+/// Surfel radius of a measurement: `r = √2 · z / f`, widened for oblique views to
+/// `min(r / |n_z|, 2 r)` (n camera-frame normal).
+pub fn radius(depth_m: f32, focal_mean_px: f32, normal_z: f32) -> f32 {
+    let r = std::f32::consts::SQRT_2 * depth_m / focal_mean_px;
+    (r / normal_z.abs().max(1e-6)).min(2.0 * r)
+}
+
+/// The depth gate of association, compared along the ray:
+/// `|z_model − z_live| · λ < gate`, `λ = ‖K⁻¹ [u v 1]ᵀ‖`.
+pub fn depth_gate(z_model: f32, z_live: f32, lambda: f32, gate_m: f32) -> bool {
+    (z_model - z_live).abs() * lambda < gate_m
+}
+
+/// The normal gate: the model normal is nearly parallel to the view axis
+/// (|n_model.z| < `bypass_nz`) or within `max_angle_rad` of the live normal.
+pub fn normal_gate(n_model: &Vector3<f32>, n_live: &Vector3<f32>, max_angle_rad: f32, bypass_nz: f32) -> bool {
+    n_model.z.abs() < bypass_nz || n_model.dot(n_live).clamp(-1.0, 1.0).acos() < max_angle_rad
+}
+
+/// A measurement in world coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measurement {
+    /// Position, metres.
+    pub position_m: Point3<f32>,
+    /// Unit normal toward the camera.
+    pub normal: Vector3<f32>,
+    /// Colour.
+    pub colour: [u8; 3],
+    /// Confidence α.
+    pub confidence: f32,
+    /// Radius, metres.
+    pub radius_m: f32,
+}
+
+impl Measurement {
+    /// A new, unstable surfel from this measurement at frame `now`.
+    pub fn to_surfel(&self, now: u32) -> Surfel {
+        Surfel { position_m: self.position_m, normal: self.normal, colour: self.colour, confidence: self.confidence, radius_m: self.radius_m, t0: now, t: now }
+    }
+}
+
+/// Fuses a measurement into a surfel (Keller et al. Eq. (4); ElasticFusion `update.vert`): if
+/// the measurement's radius is below `radius_ratio` × the surfel's, position, colour, normal
+/// and radius become confidence-weighted means; in any case the confidence grows by α and the
+/// surfel is marked seen at `now`.
+pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
+    let (c, a) = (s.confidence, m.confidence);
+    if m.radius_m < radius_ratio * s.radius_m {
+        let k = 1.0 / (c + a);
+        s.position_m = Point3::from((s.position_m.coords * c + m.position_m.coords * a) * k);
+        let n = s.normal * c + m.normal * a;
+        if n.norm() > 1e-12 {
+            s.normal = n.normalize();
+        }
+        for ch in 0..3 {
+            s.colour[ch] = ((f32::from(s.colour[ch]) * c + f32::from(m.colour[ch]) * a) * k).round().clamp(0.0, 255.0) as u8;
+        }
+        s.radius_m = (s.radius_m * c + m.radius_m * a) * k;
+    }
+    s.confidence = c + a;
+    s.t = now;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn confidence_is_one_at_the_centre_and_falls_off() {
+        assert_eq!(confidence(0.0, 200.0), 1.0);
+        assert!((confidence(200.0, 200.0) - (-1.0f32 / 0.72).exp()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn radius_widens_for_oblique_views_up_to_twice() {
+        let r = radius(0.03, 160.0, 1.0);
+        assert!((r - std::f32::consts::SQRT_2 * 0.03 / 160.0).abs() < 1e-9);
+        assert!((radius(0.03, 160.0, 0.8) - r / 0.8).abs() < 1e-9);
+        assert_eq!(radius(0.03, 160.0, 0.1), 2.0 * r);
+    }
+
+    #[test]
+    fn merging_averages_by_confidence() {
+        let mut s =
+            Measurement { position_m: Point3::new(0.0, 0.0, 0.03), normal: -Vector3::z(), colour: [100, 0, 0], confidence: 3.0, radius_m: 1e-4 }.to_surfel(0);
+        let m = Measurement { position_m: Point3::new(0.0, 0.0, 0.034), normal: -Vector3::z(), colour: [200, 0, 0], confidence: 1.0, radius_m: 1e-4 };
+        merge(&mut s, &m, 7, 1.5);
+        assert!((s.position_m.z - 0.031).abs() < 1e-7);
+        assert_eq!(s.colour[0], 125);
+        assert_eq!((s.confidence, s.t, s.t0), (4.0, 7, 0));
+        // A much coarser measurement only adds confidence.
+        let coarse = Measurement { radius_m: 1e-3, ..m };
+        merge(&mut s, &coarse, 8, 1.5);
+        assert!((s.position_m.z - 0.031).abs() < 1e-7);
+        assert_eq!(s.confidence, 5.0);
+    }
+
+    #[test]
+    fn gates() {
+        assert!(depth_gate(0.030, 0.031, 1.1, 0.002));
+        assert!(!depth_gate(0.030, 0.033, 1.1, 0.002));
+        let n = -Vector3::z();
+        assert!(normal_gate(&n, &Vector3::new(0.3, 0.0, -1.0).normalize(), 0.5, 0.75));
+        assert!(!normal_gate(&n, &Vector3::new(1.0, 0.0, -0.5).normalize(), 0.5, 0.75));
+        assert!(normal_gate(&Vector3::new(1.0, 0.0, -0.5).normalize(), &n, 0.5, 0.75), "bypass for grazing model normals");
+    }
+}
