@@ -35,7 +35,7 @@ pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sig
     let inv_r = -0.5 / (sigma_range_m * sigma_range_m);
     let mut out = DepthMap::new(w, h);
     out.data_mut().par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
-        for x in 0..w {
+        for (x, out) in row.iter_mut().enumerate() {
             let c = depth.at(x, y);
             if c <= 0.0 {
                 continue;
@@ -60,7 +60,7 @@ pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sig
                     wsum += wgt;
                 }
             }
-            row[x] = sum / wsum;
+            *out = sum / wsum;
         }
     });
     out

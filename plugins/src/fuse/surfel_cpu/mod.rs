@@ -105,7 +105,7 @@ impl SurfelCpu {
         let index = IndexMap::render(&self.surfels, |s| self.is_active(s, now), cam, t_world_cam, p.max_depth_m);
         let (w, h) = raw.size();
         let step = p.subsample as usize;
-        let phase = (frame.index % step.max(1)) as usize;
+        let phase = frame.index % step.max(1);
         let half_diag = cam.half_diagonal_px() as f32;
         let f_mean = (0.5 * (cam.fx + cam.fy)) as f32;
         let t = t_world_cam.cast::<f32>();
