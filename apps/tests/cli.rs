@@ -43,17 +43,19 @@ fn set_overrides_reach_the_validation() {
 }
 
 #[test]
-fn run_without_a_fuser_in_the_build_says_so() {
+fn run_on_a_tum_folder_writes_every_output_and_prints_the_metrics() {
     let tmp = tempfile::tempdir().unwrap();
-    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
-    let (ok, _, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", tmp.path().join("out").to_str().unwrap(), "-q"]);
-    if ok {
-        // A build with a fuser runs the default pipeline to the end.
-        assert!(tmp.path().join("out/summary.json").exists());
-    } else {
-        assert!(err.contains("using the oracle `ground-truth`"), "{err}");
-        assert!(err.contains("pipeline.fuser") && err.contains("no fuser plugin is registered"), "{err}");
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 8);
+    let out = tmp.path().join("out");
+    let (ok, stdout, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("ATE RMSE (SE3)") && stdout.contains("ms per frame"), "{stdout}");
+    for f in ["config.toml", "trajectory.txt", "frames.csv", "map.ply", "summary.json"] {
+        assert!(out.join(f).exists(), "{f} missing");
     }
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["frames"], 8);
+    assert_eq!(summary["pipeline"]["pipeline"]["tracker"], "icp-rgb");
 }
 
 #[test]

@@ -6,7 +6,8 @@ use capsule_slam_framework::{Registry, RegistryError, StageKind};
 use capsule_slam_tests::stages::{PointFuser, test_registry};
 
 /// Every plugin this build must ship, with its stage.
-const EXPECTED: [(&str, StageKind); 2] = [("ground-truth", StageKind::Tracker), ("sensor", StageKind::DepthEstimator)];
+const EXPECTED: [(&str, StageKind); 4] =
+    [("ground-truth", StageKind::Tracker), ("icp-rgb", StageKind::Tracker), ("sensor", StageKind::DepthEstimator), ("surfel-cpu", StageKind::Fuser)];
 
 #[test]
 fn every_shipped_plugin_is_registered() {

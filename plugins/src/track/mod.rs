@@ -1,3 +1,4 @@
 //! Trackers.
 
 pub mod ground_truth;
+pub mod icp_rgb;

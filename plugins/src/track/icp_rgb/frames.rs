@@ -1,0 +1,118 @@
+//! The image pyramids the tracker works on: the live frame and the reference (the model
+//! prediction, filled in with the previous live frame where the model has nothing).
+
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::image::gray_from_rgb;
+use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
+
+use crate::common::maps::{NormalMap, VertexMap, bilateral_depth, normal_map, usable_depth, vertex_map};
+use crate::common::pyramid::{half_depth, half_gray};
+
+/// One pyramid level.
+#[derive(Clone)]
+pub struct Level {
+    /// The level's camera.
+    pub cam: PinholeCamera,
+    /// Depth, metres (0 = invalid).
+    pub depth: DepthMap,
+    /// Camera-frame vertices.
+    pub vertices: VertexMap,
+    /// Camera-frame normals.
+    pub normals: NormalMap,
+    /// Intensity in [0, 1] (0 = invalid where the depth is invalid, for references).
+    pub gray: GrayF32,
+    /// Intensity gradient along x, per pixel.
+    pub gx: GrayF32,
+    /// Intensity gradient along y, per pixel.
+    pub gy: GrayF32,
+}
+
+/// Depth preparation parameters.
+#[derive(Debug, Clone, Copy)]
+pub struct DepthPrep {
+    /// Valid depth range, metres.
+    pub min_m: f32,
+    /// Valid depth range, metres.
+    pub max_m: f32,
+    /// Bilateral spatial σ, pixels.
+    pub sigma_px: f32,
+    /// Bilateral range σ, metres.
+    pub sigma_m: f32,
+    /// Depth step that breaks a normal, metres.
+    pub edge_jump_m: f32,
+}
+
+fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
+    let (w, h) = g.size();
+    let ok = |x: usize, y: usize| valid.at(x, y) > 0.0;
+    let gx = GrayF32::from_fn(w, h, |x, y| [if x > 0 && x + 1 < w && ok(x - 1, y) && ok(x + 1, y) { 0.5 * (g.at(x + 1, y) - g.at(x - 1, y)) } else { 0.0 }]);
+    let gy = GrayF32::from_fn(w, h, |x, y| [if y > 0 && y + 1 < h && ok(x, y - 1) && ok(x, y + 1) { 0.5 * (g.at(x, y + 1) - g.at(x, y - 1)) } else { 0.0 }]);
+    (gx, gy)
+}
+
+/// Builds `levels` levels from a level-0 depth (already prepared) and intensity.
+pub fn pyramid(depth0: DepthMap, gray0: GrayF32, normals0: Option<NormalMap>, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Vec<Level> {
+    let mut out: Vec<Level> = Vec::with_capacity(levels);
+    let (mut depth, mut gray) = (depth0, gray0);
+    for l in 0..levels {
+        let c = cam.pyramid_level(l as u32);
+        let vertices = vertex_map(&depth, &c);
+        let normals = match (l, &normals0) {
+            (0, Some(n)) => n.clone(),
+            _ => normal_map(&vertices, 1, prep.edge_jump_m * (1 << l) as f32),
+        };
+        let (gx, gy) = gradients(&gray, &depth);
+        let next_depth = half_depth(&depth, prep.edge_jump_m);
+        let d = &depth;
+        let next_gray = half_gray(&gray, |x, y| d.at(x, y) > 0.0);
+        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy });
+        depth = next_depth;
+        gray = next_gray;
+    }
+    out
+}
+
+/// The live frame's pyramid: masked, range-limited, bilateral-filtered depth (as ElasticFusion
+/// tracks on filtered depth) and NTSC intensity in [0, 1].
+pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Vec<Level> {
+    let raw = usable_depth(&frame.depth_m, &frame.masks, prep.min_m, prep.max_m);
+    let smooth = bilateral_depth(&raw, 2, prep.sigma_px, prep.sigma_m);
+    let mut gray = gray_from_rgb(&frame.colour);
+    gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
+    pyramid(smooth, gray, None, cam, levels, prep)
+}
+
+/// The reference pyramid: the model prediction where it has a surface, the previous live
+/// frame (same camera pose) elsewhere — ElasticFusion's "fill-in".
+pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Option<Vec<Level>> {
+    let (w, h) = (cam.width, cam.height);
+    let mut depth = DepthMap::new(w, h);
+    let mut gray = GrayF32::new(w, h);
+    let mut normals = NormalMap::new(w, h);
+    let model_gray = model.map(|m| gray_from_rgb(&m.colour));
+    for y in 0..h {
+        for x in 0..w {
+            if let (Some(m), Some(g)) = (model, &model_gray) {
+                let d = m.depth_m.at(x, y);
+                if d > 0.0 && m.normals_cam.pixel(x, y) != [0.0; 3] {
+                    *depth.at_mut(x, y) = d;
+                    *gray.at_mut(x, y) = g.at(x, y) / 255.0;
+                    normals.set_pixel(x, y, m.normals_cam.pixel(x, y));
+                    continue;
+                }
+            }
+            if let Some(p) = previous {
+                let d = p.depth.at(x, y);
+                if d > 0.0 && p.normals.pixel(x, y) != [0.0; 3] {
+                    *depth.at_mut(x, y) = d;
+                    *gray.at_mut(x, y) = p.gray.at(x, y);
+                    normals.set_pixel(x, y, p.normals.pixel(x, y));
+                }
+            }
+        }
+    }
+    if depth.data().iter().all(|d| *d <= 0.0) {
+        return None;
+    }
+    Some(pyramid(depth, gray, Some(normals), cam, levels, prep))
+}

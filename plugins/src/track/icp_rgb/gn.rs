@@ -1,0 +1,151 @@
+//! One Gauss-Newton system of the joint energy, Eq. (4): `E = E_icp + w_rgb E_rgb`, each term
+//! normalised by its noise scale and robustified with Huber weights. Rows are accumulated in
+//! parallel and summed in row order, so the result is deterministic.
+
+use capsule_slam_framework::Iso3;
+use nalgebra::{Matrix6, Vector3, Vector6};
+use rayon::prelude::*;
+
+use super::frames::Level;
+use super::terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
+use crate::common::maps::{normal, vertex};
+use crate::common::pyramid::bilinear;
+
+/// Weights and gates of one system.
+#[derive(Debug, Clone, Copy)]
+pub struct Weights {
+    /// Weight of the photometric term (the paper's w_rgb).
+    pub w_rgb: f64,
+    /// Noise scale of the point-to-plane residual, metres.
+    pub sigma_icp_m: f64,
+    /// Noise scale of the intensity residual, intensity in [0, 1].
+    pub sigma_rgb: f64,
+    /// Huber threshold, in noise scales.
+    pub huber_k: f64,
+    /// ICP correspondence distance gate, metres.
+    pub icp_gate_m: f64,
+    /// Cosine of the ICP normal-angle gate.
+    pub icp_cos_gate: f64,
+    /// Photometric occlusion gate on depth, metres.
+    pub rgb_depth_gate_m: f64,
+    /// Smallest reference gradient used by the photometric term, intensity per pixel.
+    pub rgb_min_gradient: f64,
+}
+
+/// An accumulated normal-equation system and its statistics.
+#[derive(Debug, Clone, Copy)]
+pub struct System {
+    /// JᵀWJ.
+    pub a: Matrix6<f64>,
+    /// JᵀWr.
+    pub b: Vector6<f64>,
+    /// ICP inliers.
+    pub icp_n: usize,
+    /// Sum of squared ICP residuals, m².
+    pub icp_sse: f64,
+    /// Photometric pixels used.
+    pub rgb_n: usize,
+    /// Sum of squared intensity residuals.
+    pub rgb_sse: f64,
+    /// Live pixels with a valid vertex and normal.
+    pub live_n: usize,
+}
+
+impl System {
+    fn zero() -> Self {
+        Self { a: Matrix6::zeros(), b: Vector6::zeros(), icp_n: 0, icp_sse: 0.0, rgb_n: 0, rgb_sse: 0.0, live_n: 0 }
+    }
+
+    fn add(&mut self, o: &System) {
+        self.a += o.a;
+        self.b += o.b;
+        self.icp_n += o.icp_n;
+        self.icp_sse += o.icp_sse;
+        self.rgb_n += o.rgb_n;
+        self.rgb_sse += o.rgb_sse;
+        self.live_n += o.live_n;
+    }
+
+    /// The Gauss-Newton step `δ = −A⁻¹ b`, if A is positive definite.
+    pub fn step(&self) -> Option<Vector6<f64>> {
+        self.a.cholesky().map(|c| -c.solve(&self.b))
+    }
+
+    /// RMS of the ICP residuals, metres.
+    pub fn icp_rms(&self) -> f64 {
+        if self.icp_n == 0 { f64::INFINITY } else { (self.icp_sse / self.icp_n as f64).sqrt() }
+    }
+}
+
+/// Accumulates the system of `t_ref_live` over every `stride`-th live pixel.
+pub fn accumulate(live: &Level, reference: &Level, t_ref_live: &Iso3, w: &Weights, stride: usize) -> System {
+    let (lw, lh) = live.depth.size();
+    let (rw, rh) = reference.depth.size();
+    let cam = &reference.cam;
+    let stride = stride.max(1);
+    let rows: Vec<System> = (0..lh)
+        .into_par_iter()
+        .step_by(stride)
+        .map(|y| {
+            let mut sys = System::zero();
+            for x in (0..lw).step_by(stride) {
+                let Some(v) = vertex(&live.vertices, x, y) else { continue };
+                let s = t_ref_live * nalgebra::Point3::from(v.cast::<f64>());
+                if s.z <= 0.0 {
+                    continue;
+                }
+                let s = s.coords;
+                let (uf, vf) = (cam.fx * s.x / s.z + cam.cx, cam.fy * s.y / s.z + cam.cy);
+                let (ui, vi) = (uf.round(), vf.round());
+                let inside = ui >= 0.0 && vi >= 0.0 && (ui as usize) < rw && (vi as usize) < rh;
+                if let Some(nl) = normal(&live.normals, x, y) {
+                    sys.live_n += 1;
+                    if inside {
+                        let (ui, vi) = (ui as usize, vi as usize);
+                        if let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
+                            let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
+                            let nl_ref = t_ref_live.rotation * nl.cast::<f64>();
+                            if (s - d).norm() <= w.icp_gate_m && nl_ref.dot(&n) >= w.icp_cos_gate {
+                                let r = icp_residual(&s, &d, &n);
+                                let j = icp_jacobian(&s, &n);
+                                let wt = huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m);
+                                sys.a += wt * j * j.transpose();
+                                sys.b += wt * j * r;
+                                sys.icp_n += 1;
+                                sys.icp_sse += r * r;
+                            }
+                        }
+                    }
+                }
+                if w.w_rgb > 0.0 && inside {
+                    let zr = reference.depth.at(ui as usize, vi as usize);
+                    if zr <= 0.0 || (f64::from(zr) - s.z).abs() > w.rgb_depth_gate_m {
+                        continue;
+                    }
+                    let (Some(ir), Some(gx), Some(gy)) =
+                        (bilinear(&reference.gray, uf, vf, true), bilinear(&reference.gx, uf, vf, false), bilinear(&reference.gy, uf, vf, false))
+                    else {
+                        continue;
+                    };
+                    let (gx, gy) = (f64::from(gx), f64::from(gy));
+                    if gx * gx + gy * gy < w.rgb_min_gradient * w.rgb_min_gradient {
+                        continue;
+                    }
+                    let r = f64::from(ir) - f64::from(live.gray.at(x, y));
+                    let j = rgb_jacobian(&s, (gx, gy), cam.fx, cam.fy);
+                    let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+                    sys.a += wt * j * j.transpose();
+                    sys.b += wt * j * r;
+                    sys.rgb_n += 1;
+                    sys.rgb_sse += r * r;
+                }
+            }
+            sys
+        })
+        .collect();
+    let mut total = System::zero();
+    for r in &rows {
+        total.add(r);
+    }
+    total
+}
