@@ -36,6 +36,8 @@ pub struct Summary {
     pub surfels_active: usize,
     /// Loop closures applied.
     pub loop_closures: usize,
+    /// Mean of every counter the stages reported, keyed `plugin.counter`.
+    pub counters_mean: BTreeMap<String, f64>,
     /// ATE RMSE after SE(3) alignment, metres, when the input has ground truth.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ate_rmse_m: Option<f64>,
@@ -59,6 +61,16 @@ impl Summary {
         }
         let p95 = if n == 0 { 0.0 } else { totals[((0.95 * n as f64).ceil() as usize).clamp(1, n) - 1] };
         let last = records.last();
+        let mut sums: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+        for r in records {
+            for (plugin, rep) in &r.reports {
+                for (k, v) in &rep.counters {
+                    let e = sums.entry(format!("{plugin}.{k}")).or_insert((0.0, 0));
+                    e.0 += v;
+                    e.1 += 1;
+                }
+            }
+        }
         Self {
             status: "complete".into(),
             frames: n,
@@ -69,6 +81,7 @@ impl Summary {
             surfels: last.map_or(0, |r| r.map.total),
             surfels_active: last.map_or(0, |r| r.map.active),
             loop_closures: records.iter().filter(|r| r.loop_closed).count(),
+            counters_mean: sums.into_iter().map(|(k, (s, n))| (k, s / n as f64)).collect(),
             ..Self::default()
         }
     }

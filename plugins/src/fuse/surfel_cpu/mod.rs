@@ -47,7 +47,9 @@ capsule_slam_framework::plugin_params! {
         /// Fuse one pixel in `subsample`² per frame, rotating with the frame index
         /// (ElasticFusion: 2; 1 fuses every pixel).
         pub subsample: u32 = 2; unit = "px"; range = 1.0..=8.0;
-        /// Bilateral filter for normals: spatial σ (ElasticFusion: 4.5 px in a 13×13 window).
+        /// Bilateral filter for normals: window radius (ElasticFusion: 6, a 13×13 window).
+        pub bilateral_radius_px: u32 = 1; unit = "px"; range = 0.0..=10.0;
+        /// Bilateral filter for normals: spatial σ (ElasticFusion: 4.5 px).
         pub bilateral_sigma_px: f32 = 2.0; unit = "px"; range = 0.1..=20.0;
         /// Bilateral filter for normals: range σ (ElasticFusion: 0.03 m, room scale).
         pub bilateral_sigma_m: f32 = 0.0008; unit = "m"; range = 1.0e-6..=10.0;
@@ -98,7 +100,7 @@ impl SurfelCpu {
         let p = &self.params;
         let cam = ctx.rig.camera();
         let raw = usable_depth(&frame.depth_m, &frame.masks, p.min_depth_m, p.max_depth_m);
-        let smooth = bilateral_depth(&raw, 2, p.bilateral_sigma_px, p.bilateral_sigma_m);
+        let smooth = bilateral_depth(&raw, p.bilateral_radius_px as usize, p.bilateral_sigma_px, p.bilateral_sigma_m);
         let v_raw = vertex_map(&raw, cam);
         let n_map = normal_map(&vertex_map(&smooth, cam), 1, p.edge_jump_m);
         let now = self.now;

@@ -34,6 +34,8 @@ pub struct DepthPrep {
     pub min_m: f32,
     /// Valid depth range, metres.
     pub max_m: f32,
+    /// Bilateral window radius, pixels.
+    pub radius_px: usize,
     /// Bilateral spatial σ, pixels.
     pub sigma_px: f32,
     /// Bilateral range σ, metres.
@@ -76,7 +78,7 @@ pub fn pyramid(depth0: DepthMap, gray0: GrayF32, normals0: Option<NormalMap>, ca
 /// tracks on filtered depth) and NTSC intensity in [0, 1].
 pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Vec<Level> {
     let raw = usable_depth(&frame.depth_m, &frame.masks, prep.min_m, prep.max_m);
-    let smooth = bilateral_depth(&raw, 2, prep.sigma_px, prep.sigma_m);
+    let smooth = bilateral_depth(&raw, prep.radius_px, prep.sigma_px, prep.sigma_m);
     let mut gray = gray_from_rgb(&frame.colour);
     gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
     pyramid(smooth, gray, None, cam, levels, prep)

@@ -77,8 +77,9 @@ impl System {
     }
 }
 
-/// Accumulates the system of `t_ref_live` over every `stride`-th live pixel.
-pub fn accumulate(live: &Level, reference: &Level, t_ref_live: &Iso3, w: &Weights, stride: usize) -> System {
+/// Accumulates the system of `t_ref_live` over every `stride`-th live pixel: ICP against
+/// `reference`, the photometric term against `photo` (both in the reference camera frame).
+pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &Iso3, w: &Weights, stride: usize) -> System {
     let (lw, lh) = live.depth.size();
     let (rw, rh) = reference.depth.size();
     let cam = &reference.cam;
@@ -118,12 +119,12 @@ pub fn accumulate(live: &Level, reference: &Level, t_ref_live: &Iso3, w: &Weight
                     }
                 }
                 if w.w_rgb > 0.0 && inside {
-                    let zr = reference.depth.at(ui as usize, vi as usize);
+                    let zr = photo.depth.at(ui as usize, vi as usize);
                     if zr <= 0.0 || (f64::from(zr) - s.z).abs() > w.rgb_depth_gate_m {
                         continue;
                     }
                     let (Some(ir), Some(gx), Some(gy)) =
-                        (bilinear(&reference.gray, uf, vf, true), bilinear(&reference.gx, uf, vf, false), bilinear(&reference.gy, uf, vf, false))
+                        (bilinear(&photo.gray, uf, vf, true), bilinear(&photo.gx, uf, vf, false), bilinear(&photo.gy, uf, vf, false))
                     else {
                         continue;
                     };

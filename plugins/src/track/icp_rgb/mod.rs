@@ -13,6 +13,14 @@
 //! content and is not a fixed number; with our normalisation `w_rgb = 0.1` means one
 //! photometric residual of one σ weighs a tenth of one geometric residual of one σ.
 //!
+//! Photometric reference. A capsule's light moves with its camera, so the brightness of a wall
+//! point changes with the pose (distance², incidence) and the fused model colour, an average
+//! over many poses, disagrees with the live image; consecutive frames share nearly the same
+//! illumination. The photometric term therefore compares with the previous live frame by
+//! default (`rgb_reference = "previous-frame"`, ElasticFusion's `-ftf` option) while ICP uses
+//! the model; `"model"` is the paper's literal choice. On phantom preset 2 (150 frames, sensor
+//! depth) the model reference gave 0.66 mm ATE against 0.04 mm with ICP alone.
+//!
 //! Where the prediction has no surface (early frames, newly seen walls), the previous live
 //! frame fills in (ElasticFusion's fill-in). Tracking is declared lost when too few pixels
 //! agree, the residual is too large, or the solution jumps; the pipeline then skips fusion.
@@ -41,6 +49,16 @@ pub enum Mode {
     FrameToFrame,
 }
 
+/// What the photometric term compares the live image with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RgbReference {
+    /// The previous live frame (lit like the current one).
+    PreviousFrame,
+    /// The predicted model colour (the paper).
+    Model,
+}
+
 /// The motion prior.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -58,6 +76,8 @@ capsule_slam_framework::plugin_params! {
         pub mode: Mode = Mode::FrameToModel; unit = "-";
         /// `constant-velocity` or `none`.
         pub motion_model: MotionModel = MotionModel::ConstantVelocity; unit = "-";
+        /// Photometric reference: `previous-frame` (default, robust to the moving light) or `model`.
+        pub rgb_reference: RgbReference = RgbReference::PreviousFrame; unit = "-";
         /// Weight of the photometric term, Eq. (4) (paper: 0.1).
         pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
         /// Noise scale of the point-to-plane residual.
@@ -72,7 +92,9 @@ capsule_slam_framework::plugin_params! {
         pub iterations_l1: u32 = 5; unit = "-"; range = 0.0..=100.0;
         /// Gauss-Newton iterations at level 2 (coarsest).
         pub iterations_l2: u32 = 4; unit = "-"; range = 0.0..=100.0;
-        /// Use every n-th pixel of level 0 (1 = all).
+        /// Stop a level when the step is below this (‖ξ‖, metres and radians mixed as in the twist).
+        pub convergence: f64 = 1.0e-5; unit = "-"; range = 0.0..=1.0;
+        /// Use every n-th pixel of level 0 in x and y (1 = all, as ElasticFusion).
         pub stride_l0: u32 = 1; unit = "px"; range = 1.0..=8.0;
         /// ICP correspondence distance gate (ElasticFusion: 0.10 m, room scale).
         pub icp_gate_m: f64 = 0.004; unit = "m"; range = 0.0..=10.0;
@@ -86,6 +108,8 @@ capsule_slam_framework::plugin_params! {
         pub min_depth_m: f32 = 0.002; unit = "m"; range = 0.0..=100.0;
         /// Valid depth range: farthest.
         pub max_depth_m: f32 = 0.25; unit = "m"; range = 0.0..=100.0;
+        /// Bilateral window radius for the live depth (ElasticFusion: 6, a 13×13 window).
+        pub bilateral_radius_px: u32 = 1; unit = "px"; range = 0.0..=10.0;
         /// Bilateral spatial σ for the live depth.
         pub bilateral_sigma_px: f32 = 2.0; unit = "px"; range = 0.1..=20.0;
         /// Bilateral range σ for the live depth (ElasticFusion: 0.03 m, room scale).
@@ -104,8 +128,9 @@ capsule_slam_framework::plugin_params! {
 /// The joint ICP + photometric tracker.
 pub struct IcpRgb {
     params: IcpRgbParams,
-    /// The last tracked live frame, level 0 (the fill-in and the frame-to-frame reference).
-    previous: Option<Level>,
+    /// The last tracked live frame's pyramid (the fill-in, the photometric and the
+    /// frame-to-frame reference).
+    previous: Option<Vec<Level>>,
     /// The last relative motion (previous camera → current camera frame).
     velocity: Option<Iso3>,
 }
@@ -126,7 +151,14 @@ impl Plugin for IcpRgb {
 impl IcpRgb {
     fn prep(&self) -> DepthPrep {
         let p = &self.params;
-        DepthPrep { min_m: p.min_depth_m, max_m: p.max_depth_m, sigma_px: p.bilateral_sigma_px, sigma_m: p.bilateral_sigma_m, edge_jump_m: p.edge_jump_m }
+        DepthPrep {
+            min_m: p.min_depth_m,
+            max_m: p.max_depth_m,
+            radius_px: p.bilateral_radius_px as usize,
+            sigma_px: p.bilateral_sigma_px,
+            sigma_m: p.bilateral_sigma_m,
+            edge_jump_m: p.edge_jump_m,
+        }
     }
 
     fn weights(&self) -> Weights {
@@ -150,37 +182,56 @@ impl Tracker for IcpRgb {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
         let cam = ctx.rig.camera();
         let prep = self.prep();
+        let clock = std::time::Instant::now();
         let live = frames::live(frame, cam, LEVELS, &prep);
+        ctx.count("ms_live_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let prior = match self.params.motion_model {
             MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
             MotionModel::None => Iso3::identity(),
         };
         let model = if self.params.mode == Mode::FrameToModel { model } else { None };
-        let Some(reference) = frames::reference(model, self.previous.as_ref(), cam, LEVELS, &prep) else {
+        let clock = std::time::Instant::now();
+        let reference = frames::reference(model, self.previous.as_ref().and_then(|p| p.first()), cam, LEVELS, &prep);
+        ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
+        let clock = std::time::Instant::now();
+        let Some(reference) = reference else {
             // Nothing to track against (the first frame): keep the prior.
-            self.previous = live.into_iter().next();
+            self.previous = Some(live);
             return Ok(TrackResult::tracked(t_world_prev * prior));
+        };
+        let photo = match (self.params.rgb_reference, &self.previous) {
+            (RgbReference::PreviousFrame, Some(p)) => p,
+            _ => &reference,
         };
         let w = self.weights();
         let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
         let mut t = prior;
         let mut total_iters = 0;
+        // Quality figures come from the last level-0 system (ElasticFusion's convention).
+        let mut fin = None;
         for level in (0..LEVELS).rev() {
             let stride = if level == 0 { self.params.stride_l0 as usize } else { 1 };
             for _ in 0..iters[level] {
-                let sys = accumulate(&live[level], &reference[level], &t, &w, stride);
+                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, &w, stride);
+                if level == 0 {
+                    fin = Some(sys);
+                }
                 let Some(delta) = sys.step() else { break };
                 if !delta.iter().all(|v| v.is_finite()) {
                     break;
                 }
                 t = capsule_slam_framework::geometry::exp_se3(&delta) * t;
                 total_iters += 1;
-                if delta.norm() < 1e-9 {
+                if delta.norm() < self.params.convergence {
                     break;
                 }
             }
         }
-        let fin = accumulate(&live[0], &reference[0], &t, &w, self.params.stride_l0 as usize);
+        let fin = match fin {
+            Some(f) => f,
+            None => accumulate(&live[0], &reference[0], &photo[0], &t, &w, self.params.stride_l0 as usize),
+        };
+        ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
         let lost = inlier_share < self.params.min_inlier_fraction || fin.icp_rms() > self.params.max_residual_m || jump > self.params.max_jump_m;
@@ -193,7 +244,7 @@ impl Tracker for IcpRgb {
             TrackStatus::Lost
         } else {
             self.velocity = Some(t);
-            self.previous = live.into_iter().next();
+            self.previous = Some(live);
             TrackStatus::Tracked
         };
         Ok(TrackResult {
