@@ -1,5 +1,6 @@
 //! `capsule-slam`: the command line of the capsule-slam framework.
 
+mod cmd_bench;
 mod cmd_config;
 mod cmd_eval;
 mod cmd_plugins;
@@ -25,6 +26,8 @@ enum Command {
     Plugins,
     /// Print configuration.
     Config(cmd_config::ConfigArgs),
+    /// Time the default pipeline per stage on the phantom at several image sizes.
+    Bench(cmd_bench::BenchArgs),
     /// Trajectory and surface error of an estimate against ground truth.
     Eval(cmd_eval::EvalArgs),
     /// Render a synthetic stomach phantom sequence with its ground truth.
@@ -40,6 +43,7 @@ fn main() -> std::process::ExitCode {
         Command::Config(a) => cmd_config::run(&a),
         Command::Synth(a) => cmd_synth::run(&a),
         Command::Eval(a) => cmd_eval::run(&a),
+        Command::Bench(a) => cmd_bench::run_bench(&a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -65,3 +65,19 @@ fn a_missing_input_or_config_names_the_path() {
     let (ok, _, err) = output(&["run", "--config", "/nonexistent/c.toml", "-q"]);
     assert!(!ok && err.contains("/nonexistent/c.toml"), "{err}");
 }
+
+#[test]
+fn the_shipped_configs_validate() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    capsule_slam_plugins::link();
+    let registry = capsule_slam_framework::Registry::from_inventory().unwrap();
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let c = Config::load(Some(&path), &[]).unwrap_or_else(|e| panic!("{e}"));
+        capsule_slam_framework::config::validate::validate(&c, &registry, capsule_slam_framework::ViewKind::Mono, &path.display().to_string())
+            .unwrap_or_else(|e| panic!("{e}"));
+        n += 1;
+    }
+    assert!(n >= 1);
+}

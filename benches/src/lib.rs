@@ -1,6 +1,43 @@
-//! Shared helpers of the criterion benchmarks (`benches/*.rs`): bench ids are registry names.
+//! Shared helpers of the criterion benchmarks (`benches/*.rs`): bench ids are registry names,
+//! inputs are phantom frames rendered in memory.
+
+use capsule_slam_framework::camera::Rig;
+use capsule_slam_framework::frame::{MASK_OUT_OF_VIEW, Masks, RgbdFrame};
+use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 
 /// Keeps the plugin registrations linked into every bench binary.
 pub fn link() {
     capsule_slam_plugins::link();
+}
+
+/// A noise-free phantom of preset 2 at the given size.
+pub fn phantom(size: SizePreset, frames: usize) -> Phantom {
+    let spec = PhantomSpec { frames, size, ..PhantomSpec::preset(2) };
+    Phantom::new(spec).unwrap_or_else(|e| panic!("phantom: {e}"))
+}
+
+/// Frame `i` with exact depth, as tracking and fusion see it.
+pub fn rgbd(p: &Phantom, i: usize) -> RgbdFrame {
+    let f = p.render(i);
+    let mut masks = Masks::new();
+    if p.camera.fov_radius_px.is_some() {
+        let mut out = p.camera.fov_mask();
+        out.data_mut().iter_mut().for_each(|v| *v = !*v);
+        masks.insert(MASK_OUT_OF_VIEW, out);
+    }
+    RgbdFrame { index: i, timestamp_s: f.timestamp_s, colour: f.rgb, depth_m: f.depth_m, depth_confidence: None, gt_t_world_cam: Some(f.t_world_cam), masks }
+}
+
+/// The phantom's rig.
+pub fn rig(p: &Phantom) -> Rig {
+    Rig::Mono(p.camera.clone())
+}
+
+/// Builds a registered plugin with default parameters.
+pub fn build(name: &str, p: &Phantom) -> capsule_slam_framework::registry::Stage {
+    link();
+    let registry = capsule_slam_framework::Registry::from_inventory().unwrap_or_else(|e| panic!("registry: {e}"));
+    let entry = registry.get(name).unwrap_or_else(|| panic!("{name} is not registered"));
+    let env = capsule_slam_framework::registry::BuildEnv::new(rig(p), None);
+    (entry.build)(&toml::Table::new(), &env).unwrap_or_else(|e| panic!("building {name}: {e}"))
 }
