@@ -127,7 +127,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     if let Some(r) = summary.metrics.get("surface_rmse_m") {
         let c = summary.metrics.get("surface_completeness_1mm").copied().unwrap_or(0.0);
-        println!("surface RMSE      {:.3} mm ({:.1} % of the seen truth within 1 mm)", r * 1e3, c * 100.0);
+        let c10 = summary.metrics.get("surface_completeness_1mm_seen10").copied().unwrap_or(0.0);
+        println!("surface RMSE      {:.3} mm", r * 1e3);
+        println!("completeness      {:.1} % of the observed truth within 1 mm ({:.1} % of the truth observed in ≥ 10 frames)", c * 100.0, c10 * 100.0);
     }
     println!("outputs           {}", out.display());
     Ok(())

@@ -32,7 +32,9 @@ impl Default for EvalOptions {
 /// `ate_rmse_sim3_m`, `sim3_scale`, `ate_mean_m`, `ate_median_m`, `ate_max_m` (of the chosen
 /// alignment), `ate_percent_of_path`, `rpe_trans_rmse_m`, `rpe_rot_rmse_deg`,
 /// `rpe_trans_per_m`, `rpe_rot_deg_per_m`, and with a map `surface_rmse_m`,
-/// `surface_accuracy_m`, `surface_completeness_1mm`, `surface_completeness_2mm`.
+/// `surface_accuracy_m`, `surface_completeness_1mm`, `surface_completeness_2mm` (over the truth
+/// observed at least once) and `surface_completeness_1mm_seen10`, `..._2mm_seen10` (over the
+/// truth observed in at least 10 frames).
 pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet, &SurfelSet)>, opts: &EvalOptions) -> BTreeMap<String, f64> {
     let mut m = BTreeMap::new();
     let path = path_length_m(gt);
@@ -71,6 +73,8 @@ pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet
             m.insert("surface_accuracy_m".into(), e.accuracy_m);
             m.insert("surface_completeness_1mm".into(), e.completeness_1mm);
             m.insert("surface_completeness_2mm".into(), e.completeness_2mm);
+            m.insert("surface_completeness_1mm_seen10".into(), e.completeness_1mm_min_views);
+            m.insert("surface_completeness_2mm_seen10".into(), e.completeness_2mm_min_views);
         }
     }
     m
@@ -78,7 +82,7 @@ pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet
 
 /// A readable table of the figures (millimetres and degrees).
 pub fn table(m: &BTreeMap<String, f64>) -> String {
-    let rows: [(&str, &str, f64, &str); 15] = [
+    let rows: [(&str, &str, f64, &str); 17] = [
         ("path_length_m", "path length", 1e3, "mm"),
         ("ate_rmse_m", "ATE RMSE, SE(3)", 1e3, "mm"),
         ("ate_rmse_sim3_m", "ATE RMSE, Sim(3)", 1e3, "mm"),
@@ -94,6 +98,8 @@ pub fn table(m: &BTreeMap<String, f64>) -> String {
         ("surface_accuracy_m", "surface accuracy (median)", 1e3, "mm"),
         ("surface_completeness_1mm", "completeness ≤ 1 mm", 100.0, "%"),
         ("surface_completeness_2mm", "completeness ≤ 2 mm", 100.0, "%"),
+        ("surface_completeness_1mm_seen10", "  of truth seen ≥ 10×, ≤ 1 mm", 100.0, "%"),
+        ("surface_completeness_2mm_seen10", "  of truth seen ≥ 10×, ≤ 2 mm", 100.0, "%"),
     ];
     let mut out = String::new();
     for (key, label, scale, unit) in rows {

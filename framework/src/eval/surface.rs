@@ -22,6 +22,9 @@ pub struct SurfaceOptions {
     pub icp_iterations: usize,
     /// Initial ICP correspondence gate, metres.
     pub icp_gate_m: f64,
+    /// Truth points observed in at least this many frames form the second completeness figure
+    /// (10 = ElasticFusion's stability threshold: what a confidence-gated fuser can keep).
+    pub min_views: f32,
     /// Lateral offset within which the distance to the nearest truth sample is measured along
     /// its normal (point-to-plane), metres; beyond it the Euclidean distance is used.
     pub plane_radius_m: f64,
@@ -29,7 +32,7 @@ pub struct SurfaceOptions {
 
 impl Default for SurfaceOptions {
     fn default() -> Self {
-        Self { max_points: 200_000, icp_iterations: 30, icp_gate_m: 0.005, plane_radius_m: 0.001 }
+        Self { max_points: 200_000, icp_iterations: 30, icp_gate_m: 0.005, min_views: 10.0, plane_radius_m: 0.001 }
     }
 }
 
@@ -44,6 +47,10 @@ pub struct SurfaceError {
     pub completeness_1mm: f64,
     /// Share of the observed truth within 2 mm of the map.
     pub completeness_2mm: f64,
+    /// Share of the truth observed in ≥ `min_views` frames within 1 mm of the map.
+    pub completeness_1mm_min_views: f64,
+    /// Share of the truth observed in ≥ `min_views` frames within 2 mm of the map.
+    pub completeness_2mm_min_views: f64,
     /// Map points evaluated.
     pub map_points: usize,
     /// Truth points counted for completeness.
@@ -145,8 +152,21 @@ pub fn surface_error(map: &SurfelSet, truth: &SurfelSet, initial: &Iso3, opts: &
             map_tree.query(&[q.x, q.y, q.z]).nearest_one::<SquaredEuclidean<f32>>().execute().distance.sqrt()
         })
         .collect();
-    let share = |r: f32| if near.is_empty() { 0.0 } else { near.iter().filter(|d| **d <= r).count() as f64 / near.len() as f64 };
-    Some(SurfaceError { rmse_m, accuracy_m, completeness_1mm: share(0.001), completeness_2mm: share(0.002), map_points: src.len(), truth_points: near.len() })
+    let views: Vec<f32> = observed.iter().map(|&i| truth.surfels[i].confidence).collect();
+    let share = |r: f32, min_views: f32| {
+        let sel: Vec<f32> = near.iter().zip(&views).filter(|(_, v)| **v >= min_views).map(|(d, _)| *d).collect();
+        if sel.is_empty() { 0.0 } else { sel.iter().filter(|d| **d <= r).count() as f64 / sel.len() as f64 }
+    };
+    Some(SurfaceError {
+        rmse_m,
+        accuracy_m,
+        completeness_1mm: share(0.001, 0.0),
+        completeness_2mm: share(0.002, 0.0),
+        completeness_1mm_min_views: share(0.001, opts.min_views),
+        completeness_2mm_min_views: share(0.002, opts.min_views),
+        map_points: src.len(),
+        truth_points: near.len(),
+    })
 }
 
 #[cfg(test)]
@@ -214,5 +234,17 @@ mod tests {
         let seen = surface_error(&map, &truth, &Iso3::identity(), &SurfaceOptions { icp_iterations: 0, ..SurfaceOptions::default() }).unwrap();
         assert_eq!(seen.truth_points, 800);
         assert!(seen.completeness_1mm > 0.999);
+        // The second figure counts only truth observed in ≥ min_views frames.
+        for s in &mut truth.surfels[..400] {
+            s.confidence = 3.0;
+        }
+        for s in &mut truth.surfels[400..800] {
+            s.confidence = 12.0;
+        }
+        let mut half = map.clone();
+        half.surfels.truncate(400);
+        let e = surface_error(&half, &truth, &Iso3::identity(), &SurfaceOptions { icp_iterations: 0, ..SurfaceOptions::default() }).unwrap();
+        // Only the two rows next to the covered half lie within 1 mm of the map.
+        assert!((e.completeness_1mm - 0.55).abs() < 0.03 && (e.completeness_1mm_min_views - 0.1).abs() < 0.03, "{e:?}");
     }
 }
