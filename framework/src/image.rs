@@ -63,6 +63,21 @@ impl<T: Copy + Default, const C: usize> Image<T, C> {
         Self { width, height, data }
     }
 
+    /// [`Image::from_fn`] with rows computed in parallel (rayon); same result.
+    pub fn from_fn_par(width: usize, height: usize, f: impl Fn(usize, usize) -> [T; C] + Sync) -> Self
+    where
+        T: Send + Sync,
+    {
+        use rayon::prelude::*;
+        let mut data = vec![T::default(); width * height * C];
+        data.par_chunks_mut((width * C).max(1)).enumerate().for_each(|(y, row)| {
+            for x in 0..width {
+                row[x * C..(x + 1) * C].copy_from_slice(&f(x, y));
+            }
+        });
+        Self { width, height, data }
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> usize {
         self.width
@@ -166,6 +181,13 @@ mod tests {
         assert_eq!(img.pixel(2, 1), [1, 2, 3]);
         assert_eq!(&img.data()[15..18], &[1, 2, 3]);
         assert_eq!(img.rows().count(), 2);
+    }
+
+    #[test]
+    fn parallel_construction_equals_sequential() {
+        let f = |x: usize, y: usize| [(x * 7 + y * 3) as u16, (x ^ y) as u16];
+        assert_eq!(Image::<u16, 2>::from_fn(37, 23, f), Image::<u16, 2>::from_fn_par(37, 23, f));
+        assert_eq!(Image::<u16, 2>::from_fn_par(0, 5, f).data().len(), 0);
     }
 
     #[test]

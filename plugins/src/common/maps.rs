@@ -69,7 +69,7 @@ pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sig
 /// Back-projects every valid pixel: `v = K⁻¹ [u v 1]ᵀ d` (the paper's p(u, D)).
 pub fn vertex_map(depth: &DepthMap, cam: &PinholeCamera) -> VertexMap {
     let (w, h) = depth.size();
-    VertexMap::from_fn(w, h, |x, y| {
+    VertexMap::from_fn_par(w, h, |x, y| {
         let d = depth.at(x, y);
         if d <= 0.0 {
             return [0.0; 3];
@@ -90,7 +90,7 @@ pub fn vertex(v: &VertexMap, x: usize, y: usize) -> Option<Vector3<f32>> {
 /// than `max_jump_m` apart in depth (a depth edge).
 pub fn normal_map(v: &VertexMap, step: usize, max_jump_m: f32) -> NormalMap {
     let (w, h) = v.size();
-    NormalMap::from_fn(w, h, |x, y| {
+    NormalMap::from_fn_par(w, h, |x, y| {
         if x < step || y < step || x + step >= w || y + step >= h {
             return [0.0; 3];
         }

@@ -7,7 +7,7 @@ use capsule_slam_framework::{DepthMap, GrayF32};
 /// `max_spread_m` of the block's first valid value (so depth edges are not blended); 0 if none.
 pub fn half_depth(d: &DepthMap, max_spread_m: f32) -> DepthMap {
     let (w, h) = (d.width() / 2, d.height() / 2);
-    DepthMap::from_fn(w, h, |x, y| {
+    DepthMap::from_fn_par(w, h, |x, y| {
         let vals = [d.at(2 * x, 2 * y), d.at(2 * x + 1, 2 * y), d.at(2 * x, 2 * y + 1), d.at(2 * x + 1, 2 * y + 1)];
         let Some(first) = vals.iter().copied().find(|v| *v > 0.0) else { return [0.0] };
         let (s, n) = vals.iter().filter(|v| **v > 0.0 && (**v - first).abs() <= max_spread_m).fold((0.0, 0), |(s, n), v| (s + v, n + 1));
@@ -16,9 +16,9 @@ pub fn half_depth(d: &DepthMap, max_spread_m: f32) -> DepthMap {
 }
 
 /// Halves an intensity image by 2×2 means over the pixels `valid` accepts (0 where none is).
-pub fn half_gray(g: &GrayF32, valid: impl Fn(usize, usize) -> bool) -> GrayF32 {
+pub fn half_gray(g: &GrayF32, valid: impl Fn(usize, usize) -> bool + Sync) -> GrayF32 {
     let (w, h) = (g.width() / 2, g.height() / 2);
-    GrayF32::from_fn(w, h, |x, y| {
+    GrayF32::from_fn_par(w, h, |x, y| {
         let (mut s, mut n) = (0.0, 0);
         for (xx, yy) in [(2 * x, 2 * y), (2 * x + 1, 2 * y), (2 * x, 2 * y + 1), (2 * x + 1, 2 * y + 1)] {
             if valid(xx, yy) {
@@ -30,22 +30,54 @@ pub fn half_gray(g: &GrayF32, valid: impl Fn(usize, usize) -> bool) -> GrayF32 {
     })
 }
 
+/// Bilinear interpolation weights at (u, v): the top-left pixel's offset and the fractions.
+#[derive(Debug, Clone, Copy)]
+pub struct Bilinear {
+    k: usize,
+    w: usize,
+    fx: f32,
+    fy: f32,
+}
+
+impl Bilinear {
+    /// Weights for sampling a `width × height` image at (u, v); `None` unless the 2×2
+    /// neighbourhood lies inside.
+    #[inline]
+    pub fn at(width: usize, height: usize, u: f64, v: f64) -> Option<Self> {
+        if !(u >= 0.0 && v >= 0.0) {
+            return None;
+        }
+        // Truncation is floor for non-negative values (and avoids a libm call).
+        let (x0, y0) = (u as usize, v as usize);
+        if x0 + 1 >= width || y0 + 1 >= height {
+            return None;
+        }
+        Some(Self { k: y0 * width + x0, w: width, fx: (u - x0 as f64) as f32, fy: (v - y0 as f64) as f32 })
+    }
+
+    /// The four neighbours of an image sampled with these weights.
+    #[inline]
+    pub fn corners(&self, g: &GrayF32) -> [f32; 4] {
+        let d = g.data();
+        [d[self.k], d[self.k + 1], d[self.k + self.w], d[self.k + self.w + 1]]
+    }
+
+    /// The interpolated value.
+    #[inline]
+    pub fn sample(&self, g: &GrayF32) -> f32 {
+        let [a, b, c, d] = self.corners(g);
+        (a * (1.0 - self.fx) + b * self.fx) * (1.0 - self.fy) + (c * (1.0 - self.fx) + d * self.fx) * self.fy
+    }
+}
+
 /// Bilinear sample of `g` at (u, v); `None` outside or next to an invalid (zero) pixel, when
 /// `zero_invalid` is set.
 pub fn bilinear(g: &GrayF32, u: f64, v: f64, zero_invalid: bool) -> Option<f32> {
-    if u < 0.0 || v < 0.0 {
+    let b = Bilinear::at(g.width(), g.height(), u, v)?;
+    if zero_invalid && b.corners(g).contains(&0.0) {
         return None;
     }
-    let (x0, y0) = (u.floor() as usize, v.floor() as usize);
-    if x0 + 1 >= g.width() || y0 + 1 >= g.height() {
-        return None;
-    }
-    let (fx, fy) = ((u - x0 as f64) as f32, (v - y0 as f64) as f32);
-    let (a, b, c, d) = (g.at(x0, y0), g.at(x0 + 1, y0), g.at(x0, y0 + 1), g.at(x0 + 1, y0 + 1));
-    if zero_invalid && (a == 0.0 || b == 0.0 || c == 0.0 || d == 0.0) {
-        return None;
-    }
-    Some((a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy)
+    Some(b.sample(g))
 }
 
 #[cfg(test)]

@@ -96,15 +96,19 @@ impl SurfelCpu {
     }
 
     /// Measurements of one frame and what to do with each.
-    fn associate(&self, frame: &RgbdFrame, t_world_cam: &Iso3, ctx: &Context) -> Vec<Action> {
+    fn associate(&self, frame: &RgbdFrame, t_world_cam: &Iso3, ctx: &mut Context) -> Vec<Action> {
         let p = &self.params;
         let cam = ctx.rig.camera();
+        let clock = std::time::Instant::now();
         let raw = usable_depth(&frame.depth_m, &frame.masks, p.min_depth_m, p.max_depth_m);
         let smooth = bilateral_depth(&raw, p.bilateral_radius_px as usize, p.bilateral_sigma_px, p.bilateral_sigma_m);
         let v_raw = vertex_map(&raw, cam);
         let n_map = normal_map(&vertex_map(&smooth, cam), 1, p.edge_jump_m);
+        ctx.count("ms_maps", clock.elapsed().as_secs_f64() * 1e3);
+        let clock = std::time::Instant::now();
         let now = self.now;
         let index = IndexMap::render(&self.surfels, |s| self.is_active(s, now), cam, t_world_cam, p.max_depth_m);
+        ctx.count("ms_index_map", clock.elapsed().as_secs_f64() * 1e3);
         let (w, h) = raw.size();
         let step = p.subsample as usize;
         let phase = frame.index % step.max(1);
@@ -165,6 +169,7 @@ impl Fuser for SurfelCpu {
         self.now = frame.index as u32;
         let now = self.now;
         let actions = self.associate(frame, t_world_cam, ctx);
+        let clock = std::time::Instant::now();
         // One update per surfel per frame: the last in pixel order wins (ElasticFusion).
         let mut update: Vec<Option<usize>> = vec![None; self.surfels.len()];
         let mut added = Vec::new();
@@ -188,6 +193,7 @@ impl Fuser for SurfelCpu {
         let (stable, life) = (self.params.stable_confidence, self.params.unstable_lifetime);
         self.surfels.retain(|s| s.confidence >= stable || now.saturating_sub(s.t) <= life);
         let removed = before - self.surfels.len();
+        ctx.count("ms_update", clock.elapsed().as_secs_f64() * 1e3);
         ctx.count("surfels_merged", merged as f64);
         ctx.count("surfels_added", n_added as f64);
         ctx.count("surfels_removed", removed as f64);

@@ -47,8 +47,10 @@ pub struct DepthPrep {
 fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
     let (w, h) = g.size();
     let ok = |x: usize, y: usize| valid.at(x, y) > 0.0;
-    let gx = GrayF32::from_fn(w, h, |x, y| [if x > 0 && x + 1 < w && ok(x - 1, y) && ok(x + 1, y) { 0.5 * (g.at(x + 1, y) - g.at(x - 1, y)) } else { 0.0 }]);
-    let gy = GrayF32::from_fn(w, h, |x, y| [if y > 0 && y + 1 < h && ok(x, y - 1) && ok(x, y + 1) { 0.5 * (g.at(x, y + 1) - g.at(x, y - 1)) } else { 0.0 }]);
+    let gx =
+        GrayF32::from_fn_par(w, h, |x, y| [if x > 0 && x + 1 < w && ok(x - 1, y) && ok(x + 1, y) { 0.5 * (g.at(x + 1, y) - g.at(x - 1, y)) } else { 0.0 }]);
+    let gy =
+        GrayF32::from_fn_par(w, h, |x, y| [if y > 0 && y + 1 < h && ok(x, y - 1) && ok(x, y + 1) { 0.5 * (g.at(x, y + 1) - g.at(x, y - 1)) } else { 0.0 }]);
     (gx, gy)
 }
 
@@ -88,31 +90,26 @@ pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthP
 /// frame (same camera pose) elsewhere — ElasticFusion's "fill-in".
 pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Option<Vec<Level>> {
     let (w, h) = (cam.width, cam.height);
-    let mut depth = DepthMap::new(w, h);
-    let mut gray = GrayF32::new(w, h);
-    let mut normals = NormalMap::new(w, h);
     let model_gray = model.map(|m| gray_from_rgb(&m.colour));
-    for y in 0..h {
-        for x in 0..w {
-            if let (Some(m), Some(g)) = (model, &model_gray) {
-                let d = m.depth_m.at(x, y);
-                if d > 0.0 && m.normals_cam.pixel(x, y) != [0.0; 3] {
-                    *depth.at_mut(x, y) = d;
-                    *gray.at_mut(x, y) = g.at(x, y) / 255.0;
-                    normals.set_pixel(x, y, m.normals_cam.pixel(x, y));
-                    continue;
-                }
-            }
-            if let Some(p) = previous {
-                let d = p.depth.at(x, y);
-                if d > 0.0 && p.normals.pixel(x, y) != [0.0; 3] {
-                    *depth.at_mut(x, y) = d;
-                    *gray.at_mut(x, y) = p.gray.at(x, y);
-                    normals.set_pixel(x, y, p.normals.pixel(x, y));
-                }
+    // Per pixel: (depth, intensity, normal) from the model, else from the previous frame.
+    let pick = |x: usize, y: usize| -> (f32, f32, [f32; 3]) {
+        if let (Some(m), Some(g)) = (model, &model_gray) {
+            let (d, n) = (m.depth_m.at(x, y), m.normals_cam.pixel(x, y));
+            if d > 0.0 && n != [0.0; 3] {
+                return (d, g.at(x, y) / 255.0, n);
             }
         }
-    }
+        if let Some(p) = previous {
+            let (d, n) = (p.depth.at(x, y), p.normals.pixel(x, y));
+            if d > 0.0 && n != [0.0; 3] {
+                return (d, p.gray.at(x, y), n);
+            }
+        }
+        (0.0, 0.0, [0.0; 3])
+    };
+    let depth = DepthMap::from_fn_par(w, h, |x, y| [pick(x, y).0]);
+    let gray = GrayF32::from_fn_par(w, h, |x, y| [pick(x, y).1]);
+    let normals = NormalMap::from_fn_par(w, h, |x, y| pick(x, y).2);
     if depth.data().iter().all(|d| *d <= 0.0) {
         return None;
     }
