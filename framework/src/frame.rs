@@ -1,7 +1,9 @@
 //! Frames: what the camera delivers ([`CameraFrame`]) and what the stages after depth
 //! estimation see ([`RgbdFrame`]).
 
+use std::any::Any;
 use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
 
 use crate::geometry::Iso3;
 use crate::image::{DepthMap, GrayF32, Mask, Rgb8};
@@ -114,6 +116,55 @@ pub struct CameraFrame {
     pub masks: Masks,
 }
 
+/// A memo of data derived from one frame (filtered depth, vertex and normal maps, ...), so that
+/// stages needing the same derivation compute it once. Keys name the derivation and every
+/// parameter it used. Stages still never call each other: they share results through the frame.
+/// A clone starts empty, so a modified copy of a frame never sees stale data.
+#[derive(Default)]
+pub struct Derived(Mutex<Vec<(String, Arc<dyn Any + Send + Sync>)>>);
+
+impl Derived {
+    /// The value under `key`, computed by `f` on first use.
+    pub fn get_or_compute<T: Any + Send + Sync>(&self, key: &str, f: impl FnOnce() -> T) -> Arc<T> {
+        let mut memo = self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(v) = memo.iter().find(|(k, _)| k == key).and_then(|(_, v)| v.clone().downcast::<T>().ok()) {
+            return v;
+        }
+        let v = Arc::new(f());
+        memo.push((key.to_owned(), v.clone()));
+        v
+    }
+
+    /// Number of memoised values.
+    pub fn len(&self) -> usize {
+        self.0.lock().map_or(0, |m| m.len())
+    }
+
+    /// Whether nothing is memoised.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+impl Clone for Derived {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl PartialEq for Derived {
+    /// Derived data never makes two frames differ.
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for Derived {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Derived({} values)", self.len())
+    }
+}
+
 /// What tracking, fusion and loop closure see: one colour image with its depth, whatever
 /// produced the depth (a sensor, shape from shading, a stereo matcher).
 #[derive(Debug, Clone, PartialEq)]
@@ -132,6 +183,8 @@ pub struct RgbdFrame {
     pub gt_t_world_cam: Option<Iso3>,
     /// Masks of pixels to ignore.
     pub masks: Masks,
+    /// Data derived from this frame, shared between stages.
+    pub derived: Derived,
 }
 
 impl RgbdFrame {
@@ -159,6 +212,21 @@ mod tests {
         let u = m.union().unwrap();
         assert_eq!(u.data(), &[true, false, false, true]);
         assert!(m.ignored(1, 1) && !m.ignored(1, 0));
+    }
+
+    #[test]
+    fn derived_values_are_computed_once_and_not_cloned() {
+        let d = Derived::default();
+        let mut calls = 0;
+        let a = d.get_or_compute("x", || {
+            calls += 1;
+            41
+        });
+        let b = d.get_or_compute("x", || 0);
+        assert_eq!((*a, *b, calls), (41, 41, 1));
+        assert_eq!(*d.get_or_compute("y", || 2.5f32), 2.5);
+        assert_eq!(d.len(), 2);
+        assert!(d.clone().is_empty());
     }
 
     #[test]

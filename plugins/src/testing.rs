@@ -17,7 +17,16 @@ pub fn rgbd(p: &Phantom, i: usize) -> RgbdFrame {
     let mut out = p.camera.fov_mask();
     out.data_mut().iter_mut().for_each(|v| *v = !*v);
     masks.insert(MASK_OUT_OF_VIEW, out);
-    RgbdFrame { index: i, timestamp_s: f.timestamp_s, colour: f.rgb, depth_m: f.depth_m, depth_confidence: None, gt_t_world_cam: Some(f.t_world_cam), masks }
+    RgbdFrame {
+        index: i,
+        timestamp_s: f.timestamp_s,
+        colour: f.rgb,
+        depth_m: f.depth_m,
+        depth_confidence: None,
+        gt_t_world_cam: Some(f.t_world_cam),
+        masks,
+        derived: Default::default(),
+    }
 }
 
 /// The phantom's rig.

@@ -187,6 +187,7 @@ impl Pipeline {
             depth_confidence: est.confidence,
             gt_t_world_cam: frame.gt_t_world_cam,
             masks: frame.masks,
+            derived: Default::default(),
         };
 
         let t = Instant::now();

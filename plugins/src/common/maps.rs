@@ -1,8 +1,10 @@
 //! Vertex and normal maps (camera frame) from a depth map.
 
+use std::sync::Arc;
+
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::frame::Masks;
-use capsule_slam_framework::{DepthMap, Image};
+use capsule_slam_framework::{DepthMap, Image, RgbdFrame};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
@@ -119,6 +121,52 @@ pub fn normal_map(v: &VertexMap, step: usize, max_jump_m: f32) -> NormalMap {
 pub fn normal(n: &NormalMap, x: usize, y: usize) -> Option<Vector3<f32>> {
     let p = n.pixel(x, y);
     (p != [0.0; 3]).then(|| Vector3::new(p[0], p[1], p[2]))
+}
+
+/// How a frame's geometry is prepared.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GeometryParams {
+    /// Valid depth range, metres.
+    pub min_m: f32,
+    /// Valid depth range, metres.
+    pub max_m: f32,
+    /// Bilateral window radius, pixels.
+    pub radius_px: usize,
+    /// Bilateral spatial σ, pixels.
+    pub sigma_px: f32,
+    /// Bilateral range σ, metres.
+    pub sigma_m: f32,
+    /// Depth step that breaks a normal, metres.
+    pub edge_jump_m: f32,
+}
+
+/// A frame's geometry: masked depth (raw and bilateral-filtered), their vertex maps, and
+/// normals of the filtered depth (ElasticFusion: positions from raw, normals from filtered).
+pub struct Geometry {
+    /// Masked, range-limited depth.
+    pub raw: DepthMap,
+    /// Its bilateral-filtered version.
+    pub smooth: DepthMap,
+    /// Vertices of the raw depth.
+    pub v_raw: VertexMap,
+    /// Vertices of the filtered depth.
+    pub v_smooth: VertexMap,
+    /// Normals of the filtered depth.
+    pub normals: NormalMap,
+}
+
+/// The geometry of `frame`, computed once per frame and parameter set (memoised on the frame,
+/// so a tracker and a fuser with the same settings share it).
+pub fn geometry(frame: &RgbdFrame, cam: &PinholeCamera, p: &GeometryParams) -> Arc<Geometry> {
+    let key = format!("geometry {p:?} {} {} {} {} {} {}", cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy);
+    frame.derived.get_or_compute(&key, || {
+        let raw = usable_depth(&frame.depth_m, &frame.masks, p.min_m, p.max_m);
+        let smooth = bilateral_depth(&raw, p.radius_px, p.sigma_px, p.sigma_m);
+        let v_raw = vertex_map(&raw, cam);
+        let v_smooth = vertex_map(&smooth, cam);
+        let normals = normal_map(&v_smooth, 1, p.edge_jump_m);
+        Geometry { raw, smooth, v_raw, v_smooth, normals }
+    })
 }
 
 #[cfg(test)]

@@ -19,7 +19,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
 use super::surfel_rules::{Measurement, confidence, depth_gate, merge, normal_gate, radius};
-use crate::common::maps::{bilateral_depth, normal, normal_map, usable_depth, vertex, vertex_map};
+use crate::common::maps::{GeometryParams, geometry, normal, vertex};
 pub use splat::{IndexMap, predict};
 
 capsule_slam_framework::plugin_params! {
@@ -100,10 +100,19 @@ impl SurfelCpu {
         let p = &self.params;
         let cam = ctx.rig.camera();
         let clock = std::time::Instant::now();
-        let raw = usable_depth(&frame.depth_m, &frame.masks, p.min_depth_m, p.max_depth_m);
-        let smooth = bilateral_depth(&raw, p.bilateral_radius_px as usize, p.bilateral_sigma_px, p.bilateral_sigma_m);
-        let v_raw = vertex_map(&raw, cam);
-        let n_map = normal_map(&vertex_map(&smooth, cam), 1, p.edge_jump_m);
+        let g = geometry(
+            frame,
+            cam,
+            &GeometryParams {
+                min_m: p.min_depth_m,
+                max_m: p.max_depth_m,
+                radius_px: p.bilateral_radius_px as usize,
+                sigma_px: p.bilateral_sigma_px,
+                sigma_m: p.bilateral_sigma_m,
+                edge_jump_m: p.edge_jump_m,
+            },
+        );
+        let (raw, v_raw, n_map) = (&g.raw, &g.v_raw, &g.normals);
         ctx.count("ms_maps", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let now = self.now;
@@ -121,7 +130,7 @@ impl SurfelCpu {
             .map(|y| {
                 let mut out = Vec::new();
                 for x in (phase..w).step_by(step) {
-                    let (Some(v), Some(n)) = (vertex(&v_raw, x, y), normal(&n_map, x, y)) else { continue };
+                    let (Some(v), Some(n)) = (vertex(v_raw, x, y), normal(n_map, x, y)) else { continue };
                     let ray = Vector3::new((x as f32 - cam.cx as f32) / cam.fx as f32, (y as f32 - cam.cy as f32) / cam.fy as f32, 1.0);
                     let lambda = ray.norm();
                     let ray_unit = ray / lambda;

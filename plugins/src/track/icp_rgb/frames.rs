@@ -5,7 +5,7 @@ use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::gray_from_rgb;
 use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
 
-use crate::common::maps::{NormalMap, VertexMap, bilateral_depth, normal_map, usable_depth, vertex_map};
+use crate::common::maps::{GeometryParams, NormalMap, VertexMap, geometry, normal_map, vertex_map};
 use crate::common::pyramid::{half_depth, half_gray};
 
 /// One pyramid level.
@@ -54,17 +54,23 @@ fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
     (gx, gy)
 }
 
-/// Builds `levels` levels from a level-0 depth (already prepared) and intensity.
-pub fn pyramid(depth0: DepthMap, gray0: GrayF32, normals0: Option<NormalMap>, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Vec<Level> {
+/// Builds `levels` levels from a level-0 depth (already prepared) and intensity, with the
+/// level-0 vertices and normals when they are known already.
+pub fn pyramid(
+    depth0: DepthMap,
+    gray0: GrayF32,
+    known0: (Option<VertexMap>, Option<NormalMap>),
+    cam: &PinholeCamera,
+    levels: usize,
+    prep: &DepthPrep,
+) -> Vec<Level> {
     let mut out: Vec<Level> = Vec::with_capacity(levels);
     let (mut depth, mut gray) = (depth0, gray0);
+    let (mut v0, mut n0) = known0;
     for l in 0..levels {
         let c = cam.pyramid_level(l as u32);
-        let vertices = vertex_map(&depth, &c);
-        let normals = match (l, &normals0) {
-            (0, Some(n)) => n.clone(),
-            _ => normal_map(&vertices, 1, prep.edge_jump_m * (1 << l) as f32),
-        };
+        let vertices = v0.take().unwrap_or_else(|| vertex_map(&depth, &c));
+        let normals = n0.take().unwrap_or_else(|| normal_map(&vertices, 1, prep.edge_jump_m * (1 << l) as f32));
         let (gx, gy) = gradients(&gray, &depth);
         let next_depth = half_depth(&depth, prep.edge_jump_m);
         let d = &depth;
@@ -79,11 +85,18 @@ pub fn pyramid(depth0: DepthMap, gray0: GrayF32, normals0: Option<NormalMap>, ca
 /// The live frame's pyramid: masked, range-limited, bilateral-filtered depth (as ElasticFusion
 /// tracks on filtered depth) and NTSC intensity in [0, 1].
 pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Vec<Level> {
-    let raw = usable_depth(&frame.depth_m, &frame.masks, prep.min_m, prep.max_m);
-    let smooth = bilateral_depth(&raw, prep.radius_px, prep.sigma_px, prep.sigma_m);
+    let params = GeometryParams {
+        min_m: prep.min_m,
+        max_m: prep.max_m,
+        radius_px: prep.radius_px,
+        sigma_px: prep.sigma_px,
+        sigma_m: prep.sigma_m,
+        edge_jump_m: prep.edge_jump_m,
+    };
+    let g = geometry(frame, cam, &params);
     let mut gray = gray_from_rgb(&frame.colour);
     gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
-    pyramid(smooth, gray, None, cam, levels, prep)
+    pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep)
 }
 
 /// The reference pyramid: the model prediction where it has a surface, the previous live
@@ -113,5 +126,5 @@ pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &Pinh
     if depth.data().iter().all(|d| *d <= 0.0) {
         return None;
     }
-    Some(pyramid(depth, gray, Some(normals), cam, levels, prep))
+    Some(pyramid(depth, gray, (None, Some(normals)), cam, levels, prep))
 }

@@ -146,19 +146,17 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
                 let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
                 if let Some(nl) = normal(&live.normals, x, y) {
                     sys.live_n += 1;
-                    if inside {
-                        if let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
-                            let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
-                            let nl_ref = t_ref_live.rotation * nl.cast::<f64>();
-                            if (s - d).norm() <= w.icp_gate_m && nl_ref.dot(&n) >= w.icp_cos_gate {
-                                let r = icp_residual(&s, &d, &n);
-                                let j = icp_jacobian(&s, &n);
-                                let wt = huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m);
-                                sys.a.add_outer(&j, wt);
-                                sys.b += wt * j * r;
-                                sys.icp_n += 1;
-                                sys.icp_sse += r * r;
-                            }
+                    if inside && let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
+                        let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
+                        let nl_ref = t_ref_live.rotation * nl.cast::<f64>();
+                        if (s - d).norm() <= w.icp_gate_m && nl_ref.dot(&n) >= w.icp_cos_gate {
+                            let r = icp_residual(&s, &d, &n);
+                            let j = icp_jacobian(&s, &n);
+                            let wt = huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m);
+                            sys.a.add_outer(&j, wt);
+                            sys.b += wt * j * r;
+                            sys.icp_n += 1;
+                            sys.icp_sse += r * r;
                         }
                     }
                 }
