@@ -93,10 +93,10 @@ pub fn predict(
         }
         let n = t_cam_world.rotation * s.normal;
         let (u, v) = (fx * p.x / p.z + cx, fy * p.y / p.z + cy);
-        // Bounding box of the disc: its radius in pixels, widened for oblique discs (capped).
+        // Bounding box of the disc: a disc of radius r at depth z projects inside a circle of
+        // r·f/z pixels (tilting only shrinks it), widened by a quarter for perspective (capped).
         let r_px = s.radius_m * fx.max(fy) / p.z;
-        let tilt = n.dot(&p.coords.normalize()).abs().max(0.35);
-        let half = (r_px / tilt).ceil().min(12.0) as i64;
+        let half = (1.25 * r_px).ceil().min(12.0) as i64;
         let (u0, v0) = (u.round() as i64, v.round() as i64);
         let np = n.dot(&p.coords);
         let r2 = s.radius_m * s.radius_m;
