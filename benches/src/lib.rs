@@ -2,7 +2,7 @@
 //! inputs are phantom frames rendered in memory.
 
 use capsule_slam_framework::camera::Rig;
-use capsule_slam_framework::frame::{MASK_OUT_OF_VIEW, Masks, RgbdFrame};
+use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 
 /// Keeps the plugin registrations linked into every bench binary.
@@ -18,23 +18,7 @@ pub fn phantom(size: SizePreset, frames: usize) -> Phantom {
 
 /// Frame `i` with exact depth, as tracking and fusion see it.
 pub fn rgbd(p: &Phantom, i: usize) -> RgbdFrame {
-    let f = p.render(i);
-    let mut masks = Masks::new();
-    if p.camera.fov_radius_px.is_some() {
-        let mut out = p.camera.fov_mask();
-        out.data_mut().iter_mut().for_each(|v| *v = !*v);
-        masks.insert(MASK_OUT_OF_VIEW, out);
-    }
-    RgbdFrame {
-        index: i,
-        timestamp_s: f.timestamp_s,
-        colour: f.rgb,
-        depth_m: f.depth_m,
-        depth_confidence: None,
-        gt_t_world_cam: Some(f.t_world_cam),
-        masks,
-        derived: Default::default(),
-    }
+    p.render(i).to_rgbd(&p.camera)
 }
 
 /// The phantom's rig.

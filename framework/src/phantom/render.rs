@@ -37,6 +37,29 @@ pub struct RenderedFrame {
     pub depth_m: DepthMap,
 }
 
+impl RenderedFrame {
+    /// The frame as tracking and fusion see it: colour, exact depth, ground-truth pose, and the
+    /// out-of-view mask of `camera`'s round field of view (if any).
+    pub fn to_rgbd(&self, camera: &crate::camera::PinholeCamera) -> crate::frame::RgbdFrame {
+        let mut masks = crate::frame::Masks::new();
+        if camera.fov_radius_px.is_some() {
+            let mut out = camera.fov_mask();
+            out.data_mut().iter_mut().for_each(|v| *v = !*v);
+            masks.insert(crate::frame::MASK_OUT_OF_VIEW, out);
+        }
+        crate::frame::RgbdFrame {
+            index: self.index,
+            timestamp_s: self.timestamp_s,
+            colour: self.rgb.clone(),
+            depth_m: self.depth_m.clone(),
+            depth_confidence: None,
+            gt_t_world_cam: Some(self.t_world_cam),
+            masks,
+            derived: Default::default(),
+        }
+    }
+}
+
 /// One rendered image row: colour, diffuse-only colour, specular mask, depth.
 struct Row {
     rgb: Vec<u8>,

@@ -27,22 +27,8 @@ pub struct Level {
     pub gy: GrayF32,
 }
 
-/// Depth preparation parameters.
-#[derive(Debug, Clone, Copy)]
-pub struct DepthPrep {
-    /// Valid depth range, metres.
-    pub min_m: f32,
-    /// Valid depth range, metres.
-    pub max_m: f32,
-    /// Bilateral window radius, pixels.
-    pub radius_px: usize,
-    /// Bilateral spatial σ, pixels.
-    pub sigma_px: f32,
-    /// Bilateral range σ, metres.
-    pub sigma_m: f32,
-    /// Depth step that breaks a normal, metres.
-    pub edge_jump_m: f32,
-}
+/// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
+pub type DepthPrep = GeometryParams;
 
 fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
     let (w, h) = g.size();
