@@ -1,3 +1,4 @@
 //! Depth estimators.
 
+pub mod near_light_sfs;
 pub mod sensor;

@@ -112,7 +112,12 @@ pub fn predict(
                 if t <= min_depth_m || t > max_depth_m || (d * t - p.coords).norm_squared() > r2 {
                     continue;
                 }
-                zbuf[y as usize * w + x as usize].fetch_min(pack(t, i), Ordering::Relaxed);
+                // Read first: most candidates lose the z-test, and a plain load is far cheaper
+                // than an atomic read-modify-write.
+                let (cell, v) = (&zbuf[y as usize * w + x as usize], pack(t, i));
+                if v < cell.load(Ordering::Relaxed) {
+                    cell.fetch_min(v, Ordering::Relaxed);
+                }
             }
         }
     });
