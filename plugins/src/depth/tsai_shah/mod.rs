@@ -217,7 +217,7 @@ impl DepthEstimator for TsaiShah {
         let mut sorted: Vec<f64> = idx.iter().map(|&k| sign * z[k]).collect();
         sorted.sort_by(f64::total_cmp);
         let (lo, hi) = (sorted[(0.02 * (n - 1.0)) as usize], sorted[(0.98 * (n - 1.0)) as usize]);
-        if !(hi - lo > 1e-12) {
+        if hi - lo <= 1e-12 || hi.is_nan() || lo.is_nan() {
             return empty(ctx, "shape from shading stayed flat (degenerate light: raise slant_floor_deg)");
         }
         let mut depth = DepthMap::new(w, h);
