@@ -2,6 +2,7 @@
 
 mod cmd_bench;
 mod cmd_config;
+mod cmd_depth_eval;
 mod cmd_eval;
 mod cmd_plugins;
 mod cmd_run;
@@ -28,6 +29,8 @@ enum Command {
     Config(cmd_config::ConfigArgs),
     /// Time the default pipeline per stage on the phantom at several image sizes.
     Bench(cmd_bench::BenchArgs),
+    /// Single-frame error of the configured depth estimator against the input's depth.
+    DepthEval(cmd_depth_eval::DepthEvalArgs),
     /// Trajectory and surface error of an estimate against ground truth.
     Eval(cmd_eval::EvalArgs),
     /// Render a synthetic stomach phantom sequence with its ground truth.
@@ -44,6 +47,7 @@ fn main() -> std::process::ExitCode {
         Command::Synth(a) => cmd_synth::run(&a),
         Command::Eval(a) => cmd_eval::run(&a),
         Command::Bench(a) => cmd_bench::run_bench(&a),
+        Command::DepthEval(a) => cmd_depth_eval::run(&a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

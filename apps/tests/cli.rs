@@ -81,3 +81,12 @@ fn the_shipped_configs_validate() {
     }
     assert!(n >= 1);
 }
+
+#[test]
+fn depth_eval_scores_the_sensor_oracle_as_exact() {
+    let tmp = tempfile::tempdir().unwrap();
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 4);
+    let (ok, stdout, err) = output(&["depth-eval", "--input", tmp.path().to_str().unwrap(), "--every", "1"]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("| none | 0.0000 | 0.000 | 1.000"), "{stdout}");
+}
