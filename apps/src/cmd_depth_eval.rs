@@ -59,7 +59,7 @@ pub fn run(args: &DepthEvalArgs) -> anyhow::Result<()> {
     let (mut raw, mut scaled, mut ms) = (Vec::new(), Vec::new(), Vec::new());
     for i in (0..dataset.len()).step_by(args.every.max(1)) {
         let mut frame = dataset.load(i)?;
-        let truth = frame.depth_m.take().ok_or_else(|| anyhow!("frame {i} has no depth"))?;
+        let truth = frame.depth_m.clone().ok_or_else(|| anyhow!("frame {i} has no depth"))?;
         let mut report = StageReport::default();
         let start = Instant::now();
         for p in &mut pre {
