@@ -1,10 +1,9 @@
 //! `surfel-cpu`: fusing one frame into a map of the 30 frames before it, and predicting the
 //! active model, at 250×250 and 320×320.
 
-use capsule_slam_benches::{build, phantom, rgbd, rig};
+use capsule_slam_benches::{fused_map, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::phantom::SizePreset;
-use capsule_slam_framework::registry::Stage;
 use capsule_slam_framework::{Context, ModelSet};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 
@@ -14,12 +13,7 @@ fn fuse(c: &mut Criterion) {
     for (size, label) in [(SizePreset::NanEye, "250x250"), (SizePreset::Capsule320, "320x320")] {
         let p = phantom(size, 300);
         let rig = rig(&p);
-        let Stage::Fuser(mut fuser) = build("surfel-cpu", &p) else { panic!("surfel-cpu is a fuser") };
-        let mut r = StageReport::default();
-        for i in 70..100 {
-            let f = rgbd(&p, i);
-            fuser.fuse(&f, &f.gt_t_world_cam.unwrap_or_default(), &mut Context::new(i, &rig, None, &mut r)).unwrap_or_else(|e| panic!("{e}"));
-        }
+        let mut fuser = fused_map(&p, 70..100);
         let next = rgbd(&p, 100);
         let pose = next.gt_t_world_cam.unwrap_or_default();
         g.bench_with_input(BenchmarkId::new("fuse", label), &next, |b, f| {

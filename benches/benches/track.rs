@@ -1,7 +1,7 @@
 //! `icp-rgb`: one frame tracked against the prediction of a map fused from the 20 frames before
 //! it, at 250×250 and 320×320.
 
-use capsule_slam_benches::{build, phantom, rgbd, rig};
+use capsule_slam_benches::{build, fused_map, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::phantom::SizePreset;
 use capsule_slam_framework::registry::Stage;
@@ -14,12 +14,8 @@ fn track(c: &mut Criterion) {
     for (size, label) in [(SizePreset::NanEye, "250x250"), (SizePreset::Capsule320, "320x320")] {
         let p = phantom(size, 300);
         let rig = rig(&p);
-        let Stage::Fuser(mut fuser) = build("surfel-cpu", &p) else { panic!("surfel-cpu is a fuser") };
+        let mut fuser = fused_map(&p, 80..100);
         let mut r = StageReport::default();
-        for i in 80..100 {
-            let f = rgbd(&p, i);
-            fuser.fuse(&f, &f.gt_t_world_cam.unwrap_or_default(), &mut Context::new(i, &rig, None, &mut r)).unwrap_or_else(|e| panic!("{e}"));
-        }
         let prev = rgbd(&p, 99);
         let prev_pose = prev.gt_t_world_cam.unwrap_or_default();
         let model = fuser.predict(&prev_pose, ModelSet::Active, &mut Context::new(99, &rig, None, &mut r)).unwrap_or_else(|e| panic!("{e}"));

@@ -34,3 +34,16 @@ pub fn build(name: &str, p: &Phantom) -> capsule_slam_framework::registry::Stage
     let env = capsule_slam_framework::registry::BuildEnv::new(rig(p), None);
     (entry.build)(&toml::Table::new(), &env).unwrap_or_else(|e| panic!("building {name}: {e}"))
 }
+
+/// A `surfel-cpu` map fused from `frames` of `p` at their ground-truth poses.
+pub fn fused_map(p: &Phantom, frames: std::ops::Range<usize>) -> Box<dyn capsule_slam_framework::Fuser> {
+    let rig = rig(p);
+    let capsule_slam_framework::registry::Stage::Fuser(mut fuser) = build("surfel-cpu", p) else { panic!("surfel-cpu is a fuser") };
+    let mut r = capsule_slam_framework::context::StageReport::default();
+    for i in frames {
+        let f = rgbd(p, i);
+        let pose = f.gt_t_world_cam.unwrap_or_default();
+        fuser.fuse(&f, &pose, &mut capsule_slam_framework::Context::new(i, &rig, None, &mut r)).unwrap_or_else(|e| panic!("{e}"));
+    }
+    fuser
+}
