@@ -160,7 +160,7 @@ impl Pipeline {
         let mut rec = FrameRecord::new(idx, frame.timestamp_s);
         let rig = &self.rig;
         let prediction = self.prediction.as_ref();
-        if frame.views.kind() != rig.kind() && matches!(frame.views, Views::Mono(_)) && matches!(rig, Rig::Stereo { .. }) {
+        if matches!((rig, &frame.views), (Rig::Stereo { .. }, Views::Mono(_))) {
             return Err(stage_err(idx, "input", StageError::invalid_input("the rig is stereo but the frame has one view")));
         }
 

@@ -76,9 +76,7 @@ impl Plugin for TsaiShah {
     type Params = TsaiShahParams;
 
     fn build(params: TsaiShahParams, _env: &BuildEnv) -> Result<Self, StageError> {
-        if params.near_m >= params.far_m {
-            return Err(StageError::invalid_input(format!("near_m ({}) must be below far_m ({})", params.near_m, params.far_m)));
-        }
+        crate::common::ordered("near_m", params.near_m, "far_m", params.far_m)?;
         Ok(Self { params })
     }
 }

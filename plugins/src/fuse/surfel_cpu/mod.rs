@@ -72,9 +72,7 @@ impl Plugin for SurfelCpu {
     type Params = SurfelCpuParams;
 
     fn build(params: SurfelCpuParams, _env: &BuildEnv) -> Result<Self, StageError> {
-        if params.min_depth_m >= params.max_depth_m {
-            return Err(StageError::invalid_input(format!("min_depth_m ({}) must be below max_depth_m ({})", params.min_depth_m, params.max_depth_m)));
-        }
+        crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         Ok(Self { params, surfels: Vec::new(), now: 0 })
     }
 }

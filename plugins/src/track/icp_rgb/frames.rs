@@ -106,9 +106,16 @@ pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &Pinh
         }
         (0.0, 0.0, [0.0; 3])
     };
-    let depth = DepthMap::from_fn_par(w, h, |x, y| [pick(x, y).0]);
-    let gray = GrayF32::from_fn_par(w, h, |x, y| [pick(x, y).1]);
-    let normals = NormalMap::from_fn_par(w, h, |x, y| pick(x, y).2);
+    let picked = capsule_slam_framework::Image::<f32, 5>::from_fn_par(w, h, |x, y| {
+        let (d, g, n) = pick(x, y);
+        [d, g, n[0], n[1], n[2]]
+    });
+    let depth = DepthMap::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[0]]);
+    let gray = GrayF32::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[1]]);
+    let normals = NormalMap::from_fn_par(w, h, |x, y| {
+        let v = picked.pixel(x, y);
+        [v[2], v[3], v[4]]
+    });
     if depth.data().iter().all(|d| *d <= 0.0) {
         return None;
     }

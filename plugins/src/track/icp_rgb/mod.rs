@@ -142,9 +142,7 @@ impl Plugin for IcpRgb {
     type Params = IcpRgbParams;
 
     fn build(params: IcpRgbParams, _env: &BuildEnv) -> Result<Self, StageError> {
-        if params.min_depth_m >= params.max_depth_m {
-            return Err(StageError::invalid_input(format!("min_depth_m ({}) must be below max_depth_m ({})", params.min_depth_m, params.max_depth_m)));
-        }
+        crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         Ok(Self { params, previous: None, velocity: None })
     }
 }
