@@ -36,7 +36,7 @@ fn set_overrides_reach_the_validation() {
     let tmp = tempfile::tempdir().unwrap();
     capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
     let input = tmp.path().to_str().unwrap();
-    let (ok, _, err) = output(&["run", "--input", input, "--set", "pipeline.tracker=icp-magic", "--set", "plugins.sensor.max_depth_m=-1", "-q"]);
+    let (ok, _, err) = output(&["run", "--input", input, "--set", "pipeline.tracker=icp-magic", "--set", "pipeline.depth=sensor", "--set", "plugins.sensor.max_depth_m=-1", "-q"]);
     assert!(!ok);
     assert!(err.contains("pipeline.tracker") && err.contains("ground-truth"), "{err}");
     assert!(err.contains("plugins.sensor.max_depth_m"), "{err}");
@@ -47,7 +47,7 @@ fn run_on_a_tum_folder_writes_every_output_and_prints_the_metrics() {
     let tmp = tempfile::tempdir().unwrap();
     capsule_slam_tests::fixtures::write_dataset(tmp.path(), 8);
     let out = tmp.path().join("out");
-    let (ok, stdout, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "-q"]);
+    let (ok, stdout, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "--set", "pipeline.depth=sensor", "-q"]);
     assert!(ok, "{err}");
     assert!(stdout.contains("ATE RMSE (SE3)") && stdout.contains("ms per frame"), "{stdout}");
     for f in ["config.toml", "trajectory.txt", "frames.csv", "map.ply", "summary.json"] {
@@ -56,6 +56,16 @@ fn run_on_a_tum_folder_writes_every_output_and_prints_the_metrics() {
     let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 8);
     assert_eq!(summary["pipeline"]["pipeline"]["tracker"], "icp-rgb");
+}
+
+#[test]
+fn the_monocular_default_on_an_input_without_a_light_model_says_what_to_do() {
+    let tmp = tempfile::tempdir().unwrap();
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
+    let out = tmp.path().join("out");
+    let (ok, _, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "-q"]);
+    assert!(!ok);
+    assert!(err.contains("light.toml") && err.contains("pipeline.depth=sensor"), "{err}");
 }
 
 #[test]
@@ -86,7 +96,7 @@ fn the_shipped_configs_validate() {
 fn depth_eval_scores_the_sensor_oracle_as_exact() {
     let tmp = tempfile::tempdir().unwrap();
     capsule_slam_tests::fixtures::write_dataset(tmp.path(), 4);
-    let (ok, stdout, err) = output(&["depth-eval", "--input", tmp.path().to_str().unwrap(), "--every", "1"]);
+    let (ok, stdout, err) = output(&["depth-eval", "--input", tmp.path().to_str().unwrap(), "--every", "1", "--set", "pipeline.depth=sensor"]);
     assert!(ok, "{err}");
     assert!(stdout.contains("| none | 0.0000 | 0.000 | 1.000"), "{stdout}");
 }

@@ -165,10 +165,23 @@ impl std::fmt::Debug for Derived {
     }
 }
 
+/// Where a frame's depth came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum DepthSource {
+    /// Measured (an RGB-D sensor, or the phantom's exact depth): noise of fractions of a mm.
+    #[default]
+    Measured,
+    /// Estimated from the image (shape from shading): smooth, but biased by millimetres where
+    /// the albedo or the light model is off.
+    Estimated,
+}
+
 /// What tracking, fusion and loop closure see: one colour image with its depth, whatever
 /// produced the depth (a sensor, shape from shading, a stereo matcher).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RgbdFrame {
+    /// Where the depth came from: a tracker weighs measured and estimated depth differently.
+    pub depth_source: DepthSource,
     /// 0-based index in the sequence.
     pub index: usize,
     /// Timestamp, seconds.

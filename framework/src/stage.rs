@@ -48,6 +48,10 @@ pub trait DepthEstimator: Send {
     fn input_kind(&self) -> ViewKind {
         ViewKind::Mono
     }
+    /// Whether the depth is measured or estimated (default: estimated).
+    fn source(&self) -> crate::frame::DepthSource {
+        crate::frame::DepthSource::Estimated
+    }
     /// Estimates depth for the frame's reference view. `ctx.prediction` holds the model
     /// prediction at the previous pose, for estimators that use the map (e.g. its albedo).
     fn estimate(&mut self, frame: &CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError>;

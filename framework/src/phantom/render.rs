@@ -48,6 +48,7 @@ impl RenderedFrame {
             masks.insert(crate::frame::MASK_OUT_OF_VIEW, out);
         }
         crate::frame::RgbdFrame {
+            depth_source: crate::frame::DepthSource::Measured,
             index: self.index,
             timestamp_s: self.timestamp_s,
             colour: self.rgb.clone(),

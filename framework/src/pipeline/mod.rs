@@ -180,6 +180,7 @@ impl Pipeline {
             Views::Stereo { left, .. } => left,
         };
         let rgbd = RgbdFrame {
+            depth_source: depth.source(),
             index: idx,
             timestamp_s: frame.timestamp_s,
             colour,

@@ -35,6 +35,10 @@ impl Plugin for Sensor {
 }
 
 impl DepthEstimator for Sensor {
+    fn source(&self) -> capsule_slam_framework::frame::DepthSource {
+        capsule_slam_framework::frame::DepthSource::Measured
+    }
+
     fn estimate(&mut self, frame: &capsule_slam_framework::CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError> {
         let Some(depth) = &frame.depth_m else {
             return Err(StageError::invalid_input(format!(

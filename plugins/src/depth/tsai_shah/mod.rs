@@ -69,6 +69,13 @@ pub struct TsaiShah {
     params: TsaiShahParams,
 }
 
+impl TsaiShah {
+    /// An estimator with the given parameters (`near_m < far_m` is checked by `build`).
+    pub fn new(params: TsaiShahParams) -> Self {
+        Self { params }
+    }
+}
+
 impl Plugin for TsaiShah {
     const NAME: &'static str = "tsai-shah";
     const SUMMARY: &'static str =
@@ -77,7 +84,7 @@ impl Plugin for TsaiShah {
 
     fn build(params: TsaiShahParams, _env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("near_m", params.near_m, "far_m", params.far_m)?;
-        Ok(Self { params })
+        Ok(Self::new(params))
     }
 }
 
