@@ -125,6 +125,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             .unwrap_or_default();
         println!("ATE RMSE (SE3)    {:.3} mm{pct}", a * 1e3);
     }
+    if let (Some(a), Some(scale)) = (summary.metrics.get("ate_rmse_sim3_m"), summary.metrics.get("sim3_scale")) {
+        let path_m = summary.metrics.get("path_length_m").copied().unwrap_or(0.0);
+        let pct = if path_m > 0.0 { format!(" ({:.3} % of path)", a / path_m * 100.0) } else { String::new() };
+        println!("ATE RMSE (Sim3)   {:.3} mm{pct}, scale {scale:.3}", a * 1e3);
+    }
     if let Some(r) = summary.metrics.get("surface_rmse_m") {
         let c = summary.metrics.get("surface_completeness_1mm").copied().unwrap_or(0.0);
         let c10 = summary.metrics.get("surface_completeness_1mm_seen10").copied().unwrap_or(0.0);
