@@ -1,6 +1,7 @@
 //! `capsule-slam`: the command line of the capsule-slam framework.
 
 mod cmd_bench;
+mod cmd_calibrate_light;
 mod cmd_config;
 mod cmd_depth_eval;
 mod cmd_eval;
@@ -29,6 +30,8 @@ enum Command {
     Config(cmd_config::ConfigArgs),
     /// Time the default pipeline per stage on the phantom at several image sizes.
     Bench(cmd_bench::BenchArgs),
+    /// Fit light.toml to frames of a target of known albedo and geometry (depth).
+    CalibrateLight(cmd_calibrate_light::CalibrateLightArgs),
     /// Single-frame error of the configured depth estimator against the input's depth.
     DepthEval(cmd_depth_eval::DepthEvalArgs),
     /// Trajectory and surface error of an estimate against ground truth.
@@ -48,6 +51,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(a) => cmd_eval::run(&a),
         Command::Bench(a) => cmd_bench::run_bench(&a),
         Command::DepthEval(a) => cmd_depth_eval::run(&a),
+        Command::CalibrateLight(a) => cmd_calibrate_light::run(&a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -100,3 +100,28 @@ fn depth_eval_scores_the_sensor_oracle_as_exact() {
     assert!(ok, "{err}");
     assert!(stdout.contains("| none | 0.0000 | 0.000 | 1.000"), "{stdout}");
 }
+
+#[test]
+fn calibrate_light_recovers_the_phantoms_light() {
+    // A matte target of uniform albedo, as a calibration target is (with the default highlights
+    // the gain and γ still come out within these bounds, the profile at the edge within 3 %).
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("phantom");
+    let args = ["synth", "--preset", "1", "--frames", "31", "--size", "naneye", "--texture", "none", "--specular", "0", "--out", input.to_str().unwrap(), "-q"];
+    let (ok, _, err) = output(&args);
+    assert!(ok, "{err}");
+    let out = tmp.path().join("fitted.toml");
+    let (ok, stdout, err) = output(&["calibrate-light", "--input", input.to_str().unwrap(), "--every", "15", "--out", out.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let truth = capsule_slam_framework::io::read_light_file(&input.join("light.toml")).unwrap();
+    let fit = capsule_slam_framework::io::read_light_file(&out).unwrap();
+    assert!((fit.gain / truth.gain - 1.0).abs() < 0.03, "{stdout}");
+    assert!((fit.gamma - truth.gamma).abs() < 0.05, "{stdout}");
+    assert!((fit.ambient - truth.ambient).abs() < 0.005, "{stdout}");
+    let cam = capsule_slam_framework::io::read_camera_file(&input.join("camera.toml")).unwrap().camera();
+    for (u, v) in [(cam.cx, cam.cy), (cam.cx + 60.0, cam.cy), (cam.cx, cam.cy + 90.0)] {
+        let ray = nalgebra::Point3::new((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0);
+        let profile = |l: &capsule_slam_framework::light::LightModel| l.vignetting_at(&cam, u, v) * l.falloff(&ray);
+        assert!((profile(&fit) / profile(&truth) - 1.0).abs() < 0.03, "V·gain·spot at ({u}, {v}): {stdout}");
+    }
+}

@@ -12,6 +12,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
 
+pub mod fit;
+
 /// `light.toml`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
