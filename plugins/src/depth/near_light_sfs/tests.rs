@@ -109,3 +109,17 @@ fn a_black_frame_gives_an_empty_depth_and_a_warning_not_nan() {
     let (d, _) = estimate(&Rgb8::filled(128, 128, 255), 0.45, &l, NearLightSfsParams::default());
     assert!(d.data().iter().all(|v| v.is_finite() && *v == 0.0), "saturated frames have no depth");
 }
+
+#[test]
+fn a_warm_start_from_the_previous_frame_gives_the_same_depth_within_the_tolerance() {
+    let l = light();
+    let (a, _) = render(plane(Vector3::new(0.3, 0.1, -1.0), Vector3::new(0.0, 0.0, 0.03)), 0.4, &l);
+    let (b, truth) = render(plane(Vector3::new(0.35, 0.1, -1.0), Vector3::new(0.0, 0.0, 0.031)), 0.4, &l);
+    let params = NearLightSfsParams { albedo: 0.4 * 0.9999, warm_start: true, ..NearLightSfsParams::default() };
+    let mut est = NearLightSfs::with_light(params, l.clone());
+    let c = cam();
+    est.depth(&a, None, &c).unwrap();
+    let (warm, _) = est.depth(&b, None, &c).unwrap();
+    let e = depth_error(&warm, &truth, false).unwrap();
+    assert!(e.abs_rel < 0.02, "{e:?}");
+}
