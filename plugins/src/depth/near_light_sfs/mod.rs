@@ -24,7 +24,7 @@ use capsule_slam_framework::{CameraFrame, Context, DepthEstimate, DepthEstimator
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use solve::{CellData, Grid, Photometry, SolveSettings, cost, solve};
+use solve::{Bilinear, CellData, Grid, Photometry, SolveSettings, cost, solve};
 
 capsule_slam_framework::plugin_params! {
     /// Parameters of `near-light-sfs`.
@@ -109,6 +109,8 @@ struct Tables {
     camera: PinholeCamera,
     /// The solve's grids, coarsest first.
     levels: Vec<Grid>,
+    /// The finest grid's bilinear taps per pixel.
+    fine_taps: Vec<Bilinear>,
     /// `1 / V(u)` per pixel; `None` outside the field of view.
     inv_vignetting: Vec<Option<f64>>,
 }
@@ -148,8 +150,12 @@ impl NearLightSfs {
                     (cam.in_fov(x, y) && v > 0.0).then(|| 1.0 / v)
                 })
                 .collect();
-            let levels = (0..self.params.levels).rev().map(|l| Grid::new(cam, (self.params.cell_px as usize) << l)).collect::<Result<_, _>>()?;
-            self.tables = Some(Tables { camera: cam.clone(), levels, inv_vignetting });
+            let levels: Vec<Grid> = (0..self.params.levels).rev().map(|l| Grid::new(cam, (self.params.cell_px as usize) << l)).collect::<Result<_, _>>()?;
+            let fine_taps = match levels.last() {
+                Some(g) => (0..w * h).map(|k| g.bilinear((k % w) as f64, (k / w) as f64)).collect(),
+                None => vec![Bilinear::default(); w * h],
+            };
+            self.tables = Some(Tables { camera: cam.clone(), levels, fine_taps, inv_vignetting });
         }
         self.tables.as_ref().ok_or_else(|| StageError::invalid_input("near-light-sfs: no camera tables".to_string()))
     }
@@ -262,7 +268,7 @@ impl NearLightSfs {
             fine = Some((grid, data, residual));
             solved = Some((grid, zeta));
         }
-        let (Some((grid, data, residual)), Some((_, zeta))) = (fine, solved) else { return Ok((DepthMap::new(w, h), GrayF32::new(w, h))) };
+        let (Some((_, data, residual)), Some((_, zeta))) = (fine, solved) else { return Ok((DepthMap::new(w, h), GrayF32::new(w, h))) };
         let warm = new_previous;
         // ln M per cell (the model's irradiance at the solution), and the cell depths.
         let ln_m: Vec<f64> = residual.iter().zip(&data).map(|(r, d)| r + d.ln_e).collect();
@@ -273,7 +279,7 @@ impl NearLightSfs {
             .into_par_iter()
             .map(|k| {
                 let Some((le, conf)) = irradiance[k] else { return (0.0, 0.0) };
-                let Some([z, m, dw]) = grid.interpolate_n((k % w) as f64, (k / w) as f64, |c| [z_cell[c], ln_m[c], data[c].weight]) else { return (0.0, 0.0) };
+                let Some([z, m, dw]) = tables.fine_taps[k].apply(|c| [z_cell[c], ln_m[c], data[c].weight]) else { return (0.0, 0.0) };
                 let mut z_px = z;
                 if shading && dw > 0.0 {
                     z_px *= (0.5 * (m - le)).exp();

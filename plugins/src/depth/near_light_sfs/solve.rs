@@ -128,30 +128,30 @@ impl Grid {
         ((cell.grid.0 * self.cell_px) as f64 + half, (cell.grid.1 * self.cell_px) as f64 + half)
     }
 
-    /// Bilinear interpolation of per-cell values at pixel (x, y) over the cell centres that
-    /// exist (weights renormalised at the border); `None` far outside the grid.
-    pub fn interpolate_n<const K: usize>(&self, x: f64, y: f64, f: impl Fn(usize) -> [f64; K]) -> Option<[f64; K]> {
+    /// The cells and weights of a bilinear interpolation at pixel (x, y) over the cell centres
+    /// that exist (at the border the weights are renormalised when applied).
+    pub fn bilinear(&self, x: f64, y: f64) -> Bilinear {
         let s = self.cell_px as f64;
         let half = (s - 1.0) / 2.0;
         let (gx, gy) = ((x - half) / s, (y - half) / s);
         let (x0, y0) = (gx.floor(), gy.floor());
         let (fx, fy) = (gx - x0, gy - y0);
-        let mut acc = [0.0; K];
-        let mut wsum = 0.0;
+        let mut out = Bilinear::default();
         for (dx, dy, wt) in [(0.0, 0.0, (1.0 - fx) * (1.0 - fy)), (1.0, 0.0, fx * (1.0 - fy)), (0.0, 1.0, (1.0 - fx) * fy), (1.0, 1.0, fx * fy)] {
             let (cx, cy) = (x0 + dx, y0 + dy);
             if cx < 0.0 || cy < 0.0 || cx >= self.cols as f64 || cy >= self.rows as f64 {
                 continue;
             }
             let Some(c) = self.index[cy as usize * self.cols + cx as usize] else { continue };
-            let wt = wt + 1e-6;
-            let v = f(c);
-            for k in 0..K {
-                acc[k] += wt * v[k];
-            }
-            wsum += wt;
+            out.taps[out.n] = (c as u32, wt + 1e-6);
+            out.n += 1;
         }
-        (wsum > 0.0).then(|| acc.map(|a| a / wsum))
+        out
+    }
+
+    /// Bilinear interpolation of per-cell values at pixel (x, y); `None` far outside the grid.
+    pub fn interpolate_n<const K: usize>(&self, x: f64, y: f64, f: impl Fn(usize) -> [f64; K]) -> Option<[f64; K]> {
+        self.bilinear(x, y).apply(f)
     }
 
     /// [`Grid::interpolate_n`] of one value.
@@ -162,6 +162,29 @@ impl Grid {
     /// The unknown a pixel belongs to.
     pub fn cell_of(&self, x: usize, y: usize) -> Option<usize> {
         self.index[(y / self.cell_px) * self.cols + x / self.cell_px]
+    }
+}
+
+/// Up to four cells and their bilinear weights (a per-pixel table, built once per camera).
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Bilinear {
+    taps: [(u32, f64); 4],
+    n: usize,
+}
+
+impl Bilinear {
+    /// The weighted mean of per-cell values, `None` without any cell.
+    pub fn apply<const K: usize>(&self, f: impl Fn(usize) -> [f64; K]) -> Option<[f64; K]> {
+        let mut acc = [0.0; K];
+        let mut wsum = 0.0;
+        for &(c, wt) in &self.taps[..self.n] {
+            let v = f(c as usize);
+            for k in 0..K {
+                acc[k] += wt * v[k];
+            }
+            wsum += wt;
+        }
+        (wsum > 0.0).then(|| acc.map(|a| a / wsum))
     }
 }
 
