@@ -36,7 +36,18 @@ fn set_overrides_reach_the_validation() {
     let tmp = tempfile::tempdir().unwrap();
     capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
     let input = tmp.path().to_str().unwrap();
-    let (ok, _, err) = output(&["run", "--input", input, "--set", "pipeline.tracker=icp-magic", "--set", "pipeline.depth=sensor", "--set", "plugins.sensor.max_depth_m=-1", "-q"]);
+    let (ok, _, err) = output(&[
+        "run",
+        "--input",
+        input,
+        "--set",
+        "pipeline.tracker=icp-magic",
+        "--set",
+        "pipeline.depth=sensor",
+        "--set",
+        "plugins.sensor.max_depth_m=-1",
+        "-q",
+    ]);
     assert!(!ok);
     assert!(err.contains("pipeline.tracker") && err.contains("ground-truth"), "{err}");
     assert!(err.contains("plugins.sensor.max_depth_m"), "{err}");

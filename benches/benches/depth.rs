@@ -17,7 +17,8 @@ fn depth(c: &mut Criterion) {
         let p = phantom(size, 300);
         let rig = rig(&p);
         let r = p.render(100);
-        let frame = CameraFrame { index: 100, timestamp_s: r.timestamp_s, views: Views::Mono(r.rgb.clone()), depth_m: None, gt_t_world_cam: None, masks: Masks::new() };
+        let frame =
+            CameraFrame { index: 100, timestamp_s: r.timestamp_s, views: Views::Mono(r.rgb.clone()), depth_m: None, gt_t_world_cam: None, masks: Masks::new() };
         let estimators: [(&str, Box<dyn DepthEstimator>); 2] = [
             ("near-light-sfs", Box::new(NearLightSfs::with_light(NearLightSfsParams::default(), p.light.clone()))),
             ("tsai-shah", Box::new(TsaiShah::new(TsaiShahParams::default()))),

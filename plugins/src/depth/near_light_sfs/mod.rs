@@ -117,8 +117,7 @@ struct Tables {
 
 impl Plugin for NearLightSfs {
     const NAME: &'static str = "near-light-sfs";
-    const SUMMARY: &'static str =
-        "metric depth from one image under the capsule's near light (albedo cos θ / r², calibrated light.toml): Gauss-Newton on a log-depth grid from the fall-off start";
+    const SUMMARY: &'static str = "metric depth from one image under the capsule's near light (albedo cos θ / r², calibrated light.toml): Gauss-Newton on a log-depth grid from the fall-off start";
     type Params = NearLightSfsParams;
 
     fn build(params: NearLightSfsParams, env: &BuildEnv) -> Result<Self, StageError> {
@@ -170,8 +169,7 @@ impl NearLightSfs {
         let tables = self.tables(cam)?;
         let (w, h) = image.size();
         let ws = [0.2989, 0.5870, 0.1140];
-        // 1. E per usable pixel (ln E only where the per-pixel detail needs it), and the
-        // confidence of its signal level.
+        // 1. E per usable pixel, and the confidence of its signal level.
         let inv_rho = 1.0 / p.albedo;
         let shading = p.detail == Detail::Shading;
         let irradiance: Vec<Option<(f64, f32)>> = (0..w * h)
@@ -191,7 +189,7 @@ impl NearLightSfs {
                     return None;
                 }
                 let e = lum * inv_v * inv_rho - light.ambient;
-                (e > 1e-9).then(|| (if shading { e.ln() } else { e }, ((lum - p.min_luminance) / 0.02).clamp(0.0, 1.0) as f32))
+                (e > 1e-9).then(|| (e, ((lum - p.min_luminance) / 0.02).clamp(0.0, 1.0) as f32))
             })
             .collect();
         let cell_data = |grid: &Grid| -> Vec<CellData> {
@@ -200,7 +198,7 @@ impl NearLightSfs {
             let mut sum = vec![(0.0, 0usize); grid.cells.len()];
             for (k, v) in irradiance.iter().enumerate() {
                 if let (Some((e, _)), Some(c)) = (v, grid.cell_of(k % w, k / w)) {
-                    sum[c].0 += if shading { e.exp() } else { *e };
+                    sum[c].0 += *e;
                     sum[c].1 += 1;
                 }
             }
@@ -258,9 +256,10 @@ impl NearLightSfs {
                     })
                     .collect(),
             };
-            let iterations = if solved.is_none() || tables.levels.len() == 1 { p.iterations } else { p.iterations.min(p.fine_iterations) };
             let coarsest = solved.is_none();
-            let (residual, n_factor) = solve(grid, &photometry, &data, &mut zeta, &SolveSettings { iterations, smoothness: smoothness(grid), tolerance: p.tolerance })?;
+            let iterations = if coarsest { p.iterations } else { p.iterations.min(p.fine_iterations) };
+            let (residual, n_factor) =
+                solve(grid, &photometry, &data, &mut zeta, &SolveSettings { iterations, smoothness: smoothness(grid), tolerance: p.tolerance })?;
             if coarsest {
                 new_previous = Some(zeta.clone());
             }
@@ -269,7 +268,6 @@ impl NearLightSfs {
             solved = Some((grid, zeta));
         }
         let (Some((_, data, residual)), Some((_, zeta))) = (fine, solved) else { return Ok((DepthMap::new(w, h), GrayF32::new(w, h))) };
-        let warm = new_previous;
         // ln M per cell (the model's irradiance at the solution), and the cell depths.
         let ln_m: Vec<f64> = residual.iter().zip(&data).map(|(r, d)| r + d.ln_e).collect();
         let z_cell: Vec<f64> = zeta.iter().map(|z| z.exp()).collect();
@@ -278,11 +276,11 @@ impl NearLightSfs {
         let out: Vec<(f32, f32)> = (0..w * h)
             .into_par_iter()
             .map(|k| {
-                let Some((le, conf)) = irradiance[k] else { return (0.0, 0.0) };
+                let Some((e, conf)) = irradiance[k] else { return (0.0, 0.0) };
                 let Some([z, m, dw]) = tables.fine_taps[k].apply(|c| [z_cell[c], ln_m[c], data[c].weight]) else { return (0.0, 0.0) };
                 let mut z_px = z;
                 if shading && dw > 0.0 {
-                    z_px *= (0.5 * (m - le)).exp();
+                    z_px *= (0.5 * (m - e.ln())).exp();
                 }
                 let d = z_px as f32;
                 if d.is_finite() && d >= lo && d <= hi { (d, conf * dw.min(1.0) as f32) } else { (0.0, 0.0) }
@@ -290,7 +288,7 @@ impl NearLightSfs {
             .collect();
         let depth = DepthMap::from_vec(w, h, out.iter().map(|o| o.0).collect()).map_err(|e| StageError::invalid_input(e.to_string()))?;
         let conf = GrayF32::from_vec(w, h, out.iter().map(|o| o.1).collect()).map_err(|e| StageError::invalid_input(e.to_string()))?;
-        self.previous = warm;
+        self.previous = new_previous;
         self.factorisations = factorisations;
         Ok((depth, conf))
     }

@@ -73,7 +73,10 @@ impl Grid {
         let mut cells = Vec::new();
         for gy in 0..rows {
             for gx in 0..cols {
-                let (u, v) = (((gx * s) as f64 + (s as f64 - 1.0) / 2.0).min(cam.width as f64 - 1.0), ((gy * s) as f64 + (s as f64 - 1.0) / 2.0).min(cam.height as f64 - 1.0));
+                let (u, v) = (
+                    ((gx * s) as f64 + (s as f64 - 1.0) / 2.0).min(cam.width as f64 - 1.0),
+                    ((gy * s) as f64 + (s as f64 - 1.0) / 2.0).min(cam.height as f64 - 1.0),
+                );
                 if !cam.in_fov(u, v) {
                     continue;
                 }
@@ -82,7 +85,9 @@ impl Grid {
                 cells.push(Cell { ray: Vector3::new(p.x, p.y, 1.0), grid: (gx, gy), stencil: [0; 5] });
             }
         }
-        let at = |gx: i64, gy: i64| -> Option<usize> { (gx >= 0 && gy >= 0 && (gx as usize) < cols && (gy as usize) < rows).then(|| index[gy as usize * cols + gx as usize]).flatten() };
+        let at = |gx: i64, gy: i64| -> Option<usize> {
+            (gx >= 0 && gy >= 0 && (gx as usize) < cols && (gy as usize) < rows).then(|| index[gy as usize * cols + gx as usize]).flatten()
+        };
         let mut smooth_rows = Vec::new();
         for gy in 0..rows as i64 {
             for gx in 0..cols as i64 {
@@ -150,13 +155,8 @@ impl Grid {
     }
 
     /// Bilinear interpolation of per-cell values at pixel (x, y); `None` far outside the grid.
-    pub fn interpolate_n<const K: usize>(&self, x: f64, y: f64, f: impl Fn(usize) -> [f64; K]) -> Option<[f64; K]> {
-        self.bilinear(x, y).apply(f)
-    }
-
-    /// [`Grid::interpolate_n`] of one value.
     pub fn interpolate(&self, x: f64, y: f64, f: impl Fn(usize) -> f64) -> Option<f64> {
-        self.interpolate_n(x, y, |c| [f(c)]).map(|[v]| v)
+        self.bilinear(x, y).apply(|c| [f(c)]).map(|[v]| v)
     }
 
     /// The unknown a pixel belongs to.
@@ -269,7 +269,13 @@ pub(super) fn cost(grid: &Grid, photometry: &Photometry, data: &[CellData], zeta
 
 /// Minimises the cell residuals from `zeta` (the pure fall-off start); returns the final
 /// residuals `ln M − ln E` per cell and the number of sparse factorisations.
-pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zeta: &mut [f64], settings: &SolveSettings) -> Result<(Vec<f64>, usize), StageError> {
+pub(super) fn solve(
+    grid: &Grid,
+    photometry: &Photometry,
+    data: &[CellData],
+    zeta: &mut [f64],
+    settings: &SolveSettings,
+) -> Result<(Vec<f64>, usize), StageError> {
     let mut factorisations = 0;
     let n = grid.cells.len();
     let mut a = grid.pattern.clone();
@@ -281,14 +287,14 @@ pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zet
     };
     let lambda2 = settings.smoothness * settings.smoothness;
     let cost = |zeta: &[f64]| cost(grid, photometry, data, zeta, settings.smoothness);
+    let diag: Vec<usize> = (0..n).map(|k| slot(k, k)).collect();
     let mut mu = 1e-4;
     let mut current = cost(zeta);
     for _ in 0..settings.iterations {
         let vals = a.val_mut();
         vals.iter_mut().for_each(|v| *v = 0.0);
         let mut g = vec![0.0; n];
-        for c in 0..n {
-            let d = data[c];
+        for (c, &d) in data.iter().enumerate() {
             if d.weight <= 0.0 {
                 continue;
             }
@@ -318,7 +324,6 @@ pub(super) fn solve(grid: &Grid, photometry: &Photometry, data: &[CellData], zet
                 }
             }
         }
-        let diag: Vec<usize> = (0..n).map(|k| slot(k, k)).collect();
         let base: Vec<f64> = diag.iter().map(|&s| vals[s]).collect();
         // Levenberg-Marquardt: grow the damping until the step lowers the cost.
         let mut accepted = false;

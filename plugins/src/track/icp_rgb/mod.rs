@@ -150,6 +150,13 @@ pub struct IcpRgb {
     velocity: Option<Iso3>,
 }
 
+/// How far the frame's depth is trusted, by its source (measured or estimated).
+struct DepthNoise {
+    sigma_icp_m: f64,
+    max_residual_m: f64,
+    min_inlier_fraction: f64,
+}
+
 impl Plugin for IcpRgb {
     const NAME: &'static str = "icp-rgb";
     const SUMMARY: &'static str = "joint point-to-plane ICP + photometric Gauss-Newton on a 3-level pyramid against the predicted model (paper Eqs. 2-4)";
@@ -174,14 +181,24 @@ impl IcpRgb {
         }
     }
 
-    fn weights(&self, source: DepthSource) -> Weights {
+    /// The ICP noise scale, loss residual and loss inlier share for a depth source.
+    fn depth_noise(&self, source: DepthSource) -> DepthNoise {
+        let p = &self.params;
+        match source {
+            DepthSource::Measured => DepthNoise { sigma_icp_m: p.sigma_icp_m, max_residual_m: p.max_residual_m, min_inlier_fraction: p.min_inlier_fraction },
+            DepthSource::Estimated => DepthNoise {
+                sigma_icp_m: p.sigma_icp_estimated_m,
+                max_residual_m: p.max_residual_estimated_m,
+                min_inlier_fraction: p.min_inlier_fraction_estimated,
+            },
+        }
+    }
+
+    fn weights(&self, noise: &DepthNoise) -> Weights {
         let p = &self.params;
         Weights {
             w_rgb: p.w_rgb,
-            sigma_icp_m: match source {
-                DepthSource::Measured => p.sigma_icp_m,
-                DepthSource::Estimated => p.sigma_icp_estimated_m,
-            },
+            sigma_icp_m: noise.sigma_icp_m,
             sigma_rgb: p.sigma_rgb,
             huber_k: p.huber_k,
             icp_gate_m: p.icp_gate_m,
@@ -219,7 +236,8 @@ impl Tracker for IcpRgb {
             (RgbReference::PreviousFrame, Some(p)) => p,
             _ => &reference,
         };
-        let w = self.weights(frame.depth_source);
+        let noise = self.depth_noise(frame.depth_source);
+        let w = self.weights(&noise);
         let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
         let mut t = prior;
         let mut total_iters = 0;
@@ -249,12 +267,8 @@ impl Tracker for IcpRgb {
         };
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
-        let (max_residual_m, min_inlier_fraction) = match frame.depth_source {
-            DepthSource::Measured => (self.params.max_residual_m, self.params.min_inlier_fraction),
-            DepthSource::Estimated => (self.params.max_residual_estimated_m, self.params.min_inlier_fraction_estimated),
-        };
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
-        let lost = inlier_share < min_inlier_fraction || fin.icp_rms() > max_residual_m || jump > self.params.max_jump_m;
+        let lost = inlier_share < noise.min_inlier_fraction || fin.icp_rms() > noise.max_residual_m || jump > self.params.max_jump_m;
         ctx.count("icp_inliers", fin.icp_n as f64);
         ctx.count("rgb_pixels", fin.rgb_n as f64);
         ctx.count("inlier_share", inlier_share);
