@@ -136,6 +136,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         println!("surface RMSE      {:.3} mm", r * 1e3);
         println!("completeness      {:.1} % of the observed truth within 1 mm ({:.1} % of the truth observed in ≥ 10 frames)", c * 100.0, c10 * 100.0);
     }
+    if let Some(a) = summary.metrics.get("depth_abs_rel") {
+        println!("depth AbsRel      {a:.4} (estimated against the input's depth, mean over frames)");
+    }
     println!("outputs           {}", out.display());
     Ok(())
 }

@@ -32,6 +32,7 @@ fn io(c: &mut Criterion) {
                 radius_m: 3e-4,
                 t0: i / 1000,
                 t: i / 1000,
+                albedo: 0.4,
             })
             .collect(),
     );

@@ -192,6 +192,9 @@ pub struct RgbdFrame {
     pub depth_m: DepthMap,
     /// Per-pixel depth confidence in [0, 1], when the estimator gives one.
     pub depth_confidence: Option<GrayF32>,
+    /// Per-pixel albedo observed by the depth estimator (linear luminance; 0 = none), when it
+    /// has a light model: what the fuser averages into each surfel's albedo.
+    pub albedo: Option<GrayF32>,
     /// Ground-truth pose, if known (for oracle stages and evaluation only).
     pub gt_t_world_cam: Option<Iso3>,
     /// Masks of pixels to ignore.

@@ -150,6 +150,14 @@ impl<T: Copy + Default> Image<T, 1> {
     }
 }
 
+/// The NTSC luminance weights of r, g, b (the paper's Sec. 3.3).
+pub const NTSC_WEIGHTS: [f64; 3] = [0.2989, 0.5870, 0.1140];
+
+/// NTSC luminance of a linear RGB triple (an albedo, a linear radiance).
+pub fn luminance(rgb: [f64; 3]) -> f64 {
+    NTSC_WEIGHTS.iter().zip(rgb).map(|(w, v)| w * v).sum()
+}
+
 /// Luminance of an RGB pixel with the NTSC weights the paper uses (Sec. 3.3:
 /// I = 0.2989 r + 0.5870 g + 0.1140 b), in the pixel's own units.
 pub fn intensity_ntsc(rgb: [u8; 3]) -> f32 {

@@ -27,6 +27,10 @@ pub struct Surfel {
     pub t0: u32,
     /// Frame index of the last update (t).
     pub t: u32,
+    /// Linear NTSC-luminance albedo fused from the frames that saw the surfel (observed
+    /// radiance over the light model's irradiance, from the depth estimator); 0 = never
+    /// observed (an estimator without a light model, such as `sensor`).
+    pub albedo: f32,
 }
 
 impl Surfel {
@@ -105,6 +109,8 @@ pub struct ModelView {
     pub confidence: GrayF32,
     /// Creation time t0 of the visible surfel (0 where empty).
     pub t0: Image<u32, 1>,
+    /// Fused albedo of the visible surfel (0 where empty or never observed).
+    pub albedo: GrayF32,
 }
 
 impl ModelView {
@@ -117,6 +123,7 @@ impl ModelView {
             colour: Rgb8::new(width, height),
             confidence: GrayF32::new(width, height),
             t0: Image::new(width, height),
+            albedo: GrayF32::new(width, height),
         }
     }
 
@@ -131,7 +138,7 @@ mod tests {
     use super::*;
 
     fn s(t0: u32, x: f32) -> Surfel {
-        Surfel { position_m: Point3::new(x, 0.0, 0.0), normal: Vector3::z(), colour: [0; 3], confidence: 1.0, radius_m: 0.001, t0, t: t0 }
+        Surfel { position_m: Point3::new(x, 0.0, 0.0), normal: Vector3::z(), colour: [0; 3], confidence: 1.0, radius_m: 0.001, t0, t: t0, albedo: 0.0 }
     }
 
     #[test]

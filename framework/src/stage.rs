@@ -38,6 +38,18 @@ pub struct DepthEstimate {
     pub depth_m: DepthMap,
     /// Confidence in [0, 1] per pixel, if the estimator has one.
     pub confidence: Option<GrayF32>,
+    /// Albedo per pixel (linear luminance; 0 = none): the observed radiance over the light
+    /// model's irradiance on the estimated surface, if the estimator has a light model. The
+    /// fuser averages it into the map, and the map's prediction gives it back
+    /// ([`ModelView::albedo`]).
+    pub albedo: Option<GrayF32>,
+}
+
+impl DepthEstimate {
+    /// A depth map alone.
+    pub fn depth_only(depth_m: DepthMap) -> Self {
+        Self { depth_m, confidence: None, albedo: None }
+    }
 }
 
 /// Step 3: depth of the reference view, from whatever the frame holds (one image by shape

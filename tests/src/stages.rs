@@ -59,6 +59,7 @@ impl Fuser for PointFuser {
                     radius_m: 1e-3,
                     t0: self.now,
                     t: self.now,
+                    albedo: 0.0,
                 });
                 added += 1;
             }
@@ -182,7 +183,7 @@ impl DepthEstimator for StereoOnly {
         ViewKind::Stereo
     }
     fn estimate(&mut self, frame: &CameraFrame, _ctx: &mut Context) -> Result<DepthEstimate, StageError> {
-        frame.depth_m.clone().map(|d| DepthEstimate { depth_m: d, confidence: None }).ok_or_else(|| StageError::invalid_input("no depth"))
+        frame.depth_m.clone().map(DepthEstimate::depth_only).ok_or_else(|| StageError::invalid_input("no depth"))
     }
 }
 

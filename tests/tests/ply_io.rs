@@ -14,8 +14,9 @@ fn surfel() -> impl Strategy<Value = Surfel> {
         0.0f32..0.01,
         0u32..5000,
         0u32..5000,
+        0.0f32..1.0,
     )
-        .prop_map(|(p, n, c, conf, r, t0, t)| Surfel {
+        .prop_map(|(p, n, c, conf, r, t0, t, albedo)| Surfel {
             position_m: Point3::new(p[0], p[1], p[2]),
             normal: Vector3::new(n[0], n[1], n[2]),
             colour: c,
@@ -23,6 +24,7 @@ fn surfel() -> impl Strategy<Value = Surfel> {
             radius_m: r,
             t0,
             t,
+            albedo,
         })
 }
 

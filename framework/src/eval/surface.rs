@@ -186,6 +186,7 @@ mod tests {
                     radius_m: 0.0,
                     t0: 0,
                     t: 0,
+                    albedo: 0.0,
                 });
             }
         }

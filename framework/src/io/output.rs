@@ -95,7 +95,7 @@ pub struct RunWriter {
 }
 
 /// Header of `frames.csv`.
-pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_depth,ms_track,ms_loop,ms_fuse,ms_predict,ms_total,surfels_total,surfels_active,surfels_added,surfels_merged,tracker_inliers,tracker_residual,loop_closure";
+pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_depth,ms_track,ms_loop,ms_fuse,ms_predict,ms_total,surfels_total,surfels_active,surfels_added,surfels_merged,tracker_inliers,tracker_residual,loop_closure,depth_abs_rel";
 
 impl RunWriter {
     /// Creates the folder and writes `config.toml`; opens the streamed files.
@@ -128,7 +128,7 @@ impl RunWriter {
         writeln!(self.trajectory, "{}", tum::format_pose(&pose)).and_then(|()| self.trajectory.flush()).map_err(|e| LoadError::io(&tp, e))?;
         let m = r.ms;
         let line = format!(
-            "{},{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{:.6e},{}",
+            "{},{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{:.6e},{},{}",
             r.index,
             r.timestamp_s,
             r.status.as_str(),
@@ -145,7 +145,8 @@ impl RunWriter {
             r.fuse.merged,
             r.inliers,
             r.residual_rms,
-            u8::from(r.loop_closed)
+            u8::from(r.loop_closed),
+            r.depth_abs_rel.map(|a| format!("{a:.5}")).unwrap_or_default()
         );
         let fp = self.dir.join("frames.csv");
         writeln!(self.frames, "{line}").and_then(|()| self.frames.flush()).map_err(|e| LoadError::io(&fp, e))

@@ -54,6 +54,7 @@ impl RenderedFrame {
             colour: self.rgb.clone(),
             depth_m: self.depth_m.clone(),
             depth_confidence: None,
+            albedo: None,
             gt_t_world_cam: Some(self.t_world_cam),
             masks,
             derived: Default::default(),
@@ -211,6 +212,7 @@ impl Phantom {
                         radius_m: (0.5 * spacing_m) as f32,
                         t0: 0,
                         t: 0,
+                        albedo: crate::image::luminance(a) as f32,
                     }
                 })
             })

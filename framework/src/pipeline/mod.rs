@@ -21,7 +21,8 @@ use crate::config::validate::validate;
 use crate::config::{Config, InitialPose};
 use crate::context::{Context, StageReport};
 use crate::error::{ConfigError, ConfigProblem, PipelineError, StageError};
-use crate::frame::{CameraFrame, RgbdFrame, Views};
+use crate::eval::depth::depth_error;
+use crate::frame::{CameraFrame, DepthSource, RgbdFrame, Views};
 use crate::geometry::{Iso3, StampedPose};
 use crate::map::{MapStats, ModelSet, ModelView, SurfelSet};
 use crate::registry::{BuildEnv, BuildError, Registry, Stage};
@@ -175,6 +176,9 @@ impl Pipeline {
         let (dname, depth) = &mut self.stages.depth;
         let est = depth.estimate(&frame, &mut Context::new(idx, rig, prediction, report(&mut rec, dname))).map_err(|e| stage_err(idx, dname, e))?;
         rec.ms.depth = ms_since(t);
+        if depth.source() == DepthSource::Estimated {
+            rec.depth_abs_rel = frame.depth_m.as_ref().and_then(|truth| depth_error(&est.depth_m, truth, false)).map(|e| e.abs_rel);
+        }
         let colour = match frame.views {
             Views::Mono(c) => c,
             Views::Stereo { left, .. } => left,
@@ -186,6 +190,7 @@ impl Pipeline {
             colour,
             depth_m: est.depth_m,
             depth_confidence: est.confidence,
+            albedo: est.albedo,
             gt_t_world_cam: frame.gt_t_world_cam,
             masks: frame.masks,
             derived: Default::default(),

@@ -63,6 +63,9 @@ pub struct FrameRecord {
     pub residual_rms: f64,
     /// Whether a loop closure was applied at this frame.
     pub loop_closed: bool,
+    /// AbsRel of an estimated depth against the input's own depth (the phantom's ground
+    /// truth), when the input has depth and the depth was estimated.
+    pub depth_abs_rel: Option<f64>,
     /// Counters and warnings per plugin name.
     pub reports: BTreeMap<String, StageReport>,
 }
@@ -81,6 +84,7 @@ impl FrameRecord {
             inliers: 0,
             residual_rms: 0.0,
             loop_closed: false,
+            depth_abs_rel: None,
             reports: BTreeMap::new(),
         }
     }

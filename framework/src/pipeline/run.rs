@@ -79,6 +79,10 @@ pub fn run(
         summary.metrics = evaluate(pipeline.trajectory(), gt, surfaces, &eval_opts);
         summary.ate_rmse_m = summary.metrics.remove("ate_rmse_m");
     }
+    let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
+    if !abs_rel.is_empty() {
+        summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
+    }
     if let Some(f) = &failure {
         summary.status = format!("failed: {f}");
     }

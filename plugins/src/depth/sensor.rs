@@ -60,7 +60,7 @@ impl DepthEstimator for Sensor {
         if valid == 0 {
             ctx.warn(format!("frame {}: no depth within [{lo}, {hi}] m", frame.index));
         }
-        Ok(DepthEstimate { depth_m: out, confidence: None })
+        Ok(DepthEstimate::depth_only(out))
     }
 }
 

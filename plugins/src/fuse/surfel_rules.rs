@@ -46,19 +46,32 @@ pub struct Measurement {
     pub confidence: f32,
     /// Radius, metres.
     pub radius_m: f32,
+    /// Observed albedo (0 = none).
+    pub albedo: f32,
 }
 
 impl Measurement {
     /// A new, unstable surfel from this measurement at frame `now`.
     pub fn to_surfel(&self, now: u32) -> Surfel {
-        Surfel { position_m: self.position_m, normal: self.normal, colour: self.colour, confidence: self.confidence, radius_m: self.radius_m, t0: now, t: now }
+        Surfel {
+            position_m: self.position_m,
+            normal: self.normal,
+            colour: self.colour,
+            confidence: self.confidence,
+            radius_m: self.radius_m,
+            t0: now,
+            t: now,
+            albedo: self.albedo,
+        }
     }
 }
 
 /// Fuses a measurement into a surfel (Keller et al. Eq. (4); ElasticFusion `update.vert`): if
 /// the measurement's radius is below `radius_ratio` × the surfel's, position, colour, normal
 /// and radius become confidence-weighted means; in any case the confidence grows by α and the
-/// surfel is marked seen at `now`.
+/// surfel is marked seen at `now`. Albedo (an addition to the surfel of the paper) is averaged
+/// like colour over the measurements that observed one, and taken as it is by a surfel that
+/// had none.
 pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
     let (c, a) = (s.confidence, m.confidence);
     if m.radius_m < radius_ratio * s.radius_m {
@@ -72,6 +85,9 @@ pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
             s.colour[ch] = ((f32::from(s.colour[ch]) * c + f32::from(m.colour[ch]) * a) * k).round().clamp(0.0, 255.0) as u8;
         }
         s.radius_m = (s.radius_m * c + m.radius_m * a) * k;
+        if m.albedo > 0.0 {
+            s.albedo = if s.albedo > 0.0 { (s.albedo * c + m.albedo * a) * k } else { m.albedo };
+        }
     }
     s.confidence = c + a;
     s.t = now;
@@ -98,8 +114,10 @@ mod tests {
     #[test]
     fn merging_averages_by_confidence() {
         let mut s =
-            Measurement { position_m: Point3::new(0.0, 0.0, 0.03), normal: -Vector3::z(), colour: [100, 0, 0], confidence: 3.0, radius_m: 1e-4 }.to_surfel(0);
-        let m = Measurement { position_m: Point3::new(0.0, 0.0, 0.034), normal: -Vector3::z(), colour: [200, 0, 0], confidence: 1.0, radius_m: 1e-4 };
+            Measurement { position_m: Point3::new(0.0, 0.0, 0.03), normal: -Vector3::z(), colour: [100, 0, 0], confidence: 3.0, radius_m: 1e-4, albedo: 0.0 }
+                .to_surfel(0);
+        let m =
+            Measurement { position_m: Point3::new(0.0, 0.0, 0.034), normal: -Vector3::z(), colour: [200, 0, 0], confidence: 1.0, radius_m: 1e-4, albedo: 0.5 };
         merge(&mut s, &m, 7, 1.5);
         assert!((s.position_m.z - 0.031).abs() < 1e-7);
         assert_eq!(s.colour[0], 125);
@@ -109,6 +127,18 @@ mod tests {
         merge(&mut s, &coarse, 8, 1.5);
         assert!((s.position_m.z - 0.031).abs() < 1e-7);
         assert_eq!(s.confidence, 5.0);
+    }
+
+    #[test]
+    fn albedo_is_taken_then_averaged_and_kept_without_observation() {
+        let m = Measurement { position_m: Point3::new(0.0, 0.0, 0.03), normal: -Vector3::z(), colour: [0; 3], confidence: 1.0, radius_m: 1e-4, albedo: 0.0 };
+        let mut s = Measurement { confidence: 3.0, ..m }.to_surfel(0);
+        merge(&mut s, &Measurement { albedo: 0.5, ..m }, 1, 1.5);
+        assert_eq!(s.albedo, 0.5, "a surfel without albedo takes the first observation");
+        merge(&mut s, &Measurement { albedo: 0.3, ..m }, 2, 1.5);
+        assert!((s.albedo - (0.5 * 4.0 + 0.3) / 5.0).abs() < 1e-6, "then the confidence-weighted mean");
+        merge(&mut s, &m, 3, 1.5);
+        assert!((s.albedo - (0.5 * 4.0 + 0.3) / 5.0).abs() < 1e-6, "a measurement without albedo leaves it");
     }
 
     #[test]

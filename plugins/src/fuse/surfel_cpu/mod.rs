@@ -122,6 +122,9 @@ impl SurfelCpu {
         let half_diag = cam.half_diagonal_px() as f32;
         let f_mean = (0.5 * (cam.fx + cam.fy)) as f32;
         let t = t_world_cam.cast::<f32>();
+        // An albedo image of another size than the depth is ignored (a plugin's bug, not the
+        // map's to crash on).
+        let albedo = frame.albedo.as_ref().filter(|a| a.size() == (w, h));
         (0..h)
             .into_par_iter()
             .filter(|y| y % step == phase)
@@ -139,6 +142,7 @@ impl SurfelCpu {
                         colour: frame.colour.pixel(x, y),
                         confidence: confidence(rho, half_diag),
                         radius_m: radius(v.z, f_mean, n.z),
+                        albedo: albedo.map_or(0.0, |a| a.at(x, y)).max(0.0),
                     };
                     // Candidates: the index map's 3×3 neighbourhood.
                     let mut best: Option<(f32, u32)> = None;

@@ -98,3 +98,42 @@ fn fused_surfels_lie_on_the_phantom_wall() {
     assert!(d[d.len() / 2] < 1e-4, "median distance to the wall {}", d[d.len() / 2]);
     assert!(d[d.len() * 95 / 100] < 5e-4, "95th percentile {}", d[d.len() * 95 / 100]);
 }
+
+/// p99 of |predicted − observed| albedo over the predicted pixels.
+fn albedo_error_p99(view: &capsule_slam_framework::ModelView, albedo: &capsule_slam_framework::GrayF32) -> (f32, usize) {
+    let mut errors: Vec<f32> =
+        view.depth_m.data().iter().zip(view.albedo.data().iter().zip(albedo.data())).filter(|(d, _)| **d > 0.0).map(|(_, (p, o))| (p - o).abs()).collect();
+    errors.sort_by(f32::total_cmp);
+    (errors.get(errors.len() * 99 / 100).copied().unwrap_or(f32::INFINITY), errors.len())
+}
+
+#[test]
+fn observed_albedo_is_fused_and_predicted_back() {
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let mut f = rgbd(&ph, 4);
+    let pose = f.gt_t_world_cam.unwrap();
+    // An albedo image that varies across the frame: 0.2 left to 0.6 right.
+    let (w, h) = f.depth_m.size();
+    let mut albedo = capsule_slam_framework::GrayF32::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            *albedo.at_mut(x, y) = 0.2 + 0.4 * x as f32 / w as f32;
+        }
+    }
+    f.albedo = Some(albedo.clone());
+    let mut s = fuser(SurfelCpuParams { stable_confidence: 0.0, subsample: 1, ..SurfelCpuParams::default() }, &ph);
+    let mut r = StageReport::default();
+    s.fuse(&f, &pose, &mut Context::new(4, &rig, None, &mut r)).unwrap();
+    s.fuse(&f, &pose, &mut Context::new(4, &rig, None, &mut r)).unwrap();
+    let view = s.predict(&pose, ModelSet::Active, &mut Context::new(4, &rig, None, &mut r)).unwrap();
+    // A surfel predicted one pixel off carries its neighbour's albedo: 0.4 / 250 per pixel.
+    let (p99, n) = albedo_error_p99(&view, &albedo);
+    assert!(n > 10_000 && p99 < 0.01, "p99 albedo error {p99} over {n} pixels");
+    // A frame without albedo leaves the fused albedo as it is.
+    f.albedo = None;
+    s.fuse(&f, &pose, &mut Context::new(5, &rig, None, &mut r)).unwrap();
+    let again = s.predict(&pose, ModelSet::Active, &mut Context::new(5, &rig, None, &mut r)).unwrap();
+    let (p99, n) = albedo_error_p99(&again, &albedo);
+    assert!(n > 10_000 && p99 < 0.01, "after a frame without albedo: p99 {p99} over {n} pixels");
+}
