@@ -3,8 +3,10 @@
 //! it to the surfel map. A loop closer computes a [`Deformation`]; the pipeline applies it to
 //! the map (through the fuser) and to the trajectory, so every consumer warps the same way.
 //!
-//! Influencing nodes here are the `k` nearest nodes in space (Sumner's rule, the paper's text);
-//! ElasticFusion's time-windowed variant is a loop closer's choice of node set, not of the warp.
+//! Influencing nodes of a point are the `k` nearest nodes in space (Sumner's rule, the paper's
+//! text) among a candidate set: every node, or (ElasticFusion's rule, `window = Some(m)`) the
+//! `m` nodes nearest in time to the point's own time, so that an old surface and a new one that
+//! cross in space (exactly what a loop closure brings together) are moved by their own nodes.
 
 use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
 
@@ -38,18 +40,47 @@ impl DeformationNode {
 /// A deformation graph with optimised node transforms.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Deformation {
-    /// The nodes.
+    /// The nodes, in time order (by `t0`, stable).
     pub nodes: Vec<DeformationNode>,
     /// Number of influencing nodes per point (k; the (k+1)-th nearest gives d_max).
     pub k: usize,
+    /// Candidate nodes per point: `Some(m)`, the m nodes nearest in time to the point's time
+    /// (ElasticFusion: 20, going back in time first); `None`, every node.
+    pub window: Option<usize>,
 }
 
 impl Deformation {
-    /// The influencing nodes of `p` with their normalised weights,
-    /// `w_n = (1 − ‖p − g_n‖ / d_max)²` (Eq. (7)), d_max the distance to the (k+1)-th nearest
-    /// node. With k or fewer nodes, d_max is 1.01 × the farthest one's distance.
-    pub fn influences(&self, p: &Point3<f64>) -> Vec<(usize, f64)> {
-        let mut d: Vec<(usize, f64)> = self.nodes.iter().enumerate().map(|(i, n)| (i, (p - n.position_m).norm())).collect();
+    /// A deformation of `nodes` (sorted here by time) with `k` influencing nodes per point among
+    /// the `window` nearest in time (`None`: among all).
+    pub fn new(mut nodes: Vec<DeformationNode>, k: usize, window: Option<usize>) -> Self {
+        nodes.sort_by_key(|n| n.t0);
+        Self { nodes, k, window }
+    }
+
+    /// Indices of the candidate nodes of a point of time `time`: ElasticFusion's rule, the node
+    /// nearest in time and the `m − 1` before it, completed by the ones after it if fewer exist.
+    pub fn candidates(&self, time: u32) -> std::ops::Range<usize> {
+        let n = self.nodes.len();
+        match self.window {
+            Some(m) if m < n => {
+                let m = m.max(1);
+                // The first node at or after `time`, or the one before it if that is nearer.
+                let after = self.nodes.partition_point(|x| x.t0 < time);
+                let nearest = if after == n || (after > 0 && time - self.nodes[after - 1].t0 <= self.nodes[after].t0 - time) { after - 1 } else { after };
+                let start = (nearest + 1).saturating_sub(m);
+                let end = (start + m).min(n);
+                end.saturating_sub(m)..end
+            }
+            _ => 0..n,
+        }
+    }
+
+    /// The influencing nodes of a point `p` of time `time` (a surfel's t0, a pose's frame
+    /// index) with their normalised weights, `w_n = (1 − ‖p − g_n‖ / d_max)²` (Eq. (7)), d_max
+    /// the distance to the (k+1)-th nearest candidate. With k or fewer candidates, d_max is
+    /// 1.01 × the farthest one's distance.
+    pub fn influences(&self, p: &Point3<f64>, time: u32) -> Vec<(usize, f64)> {
+        let mut d: Vec<(usize, f64)> = self.candidates(time).map(|i| (i, (p - self.nodes[i].position_m).norm())).collect();
         d.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
         let k = self.k.max(1);
         let d_max = match d.get(k) {
@@ -69,14 +100,14 @@ impl Deformation {
         w
     }
 
-    /// Warps a point, Eq. (5): `φ(v) = Σ w_n [R_n (v − g_n) + g_n + t_n]`.
-    pub fn warp_point(&self, p: &Point3<f64>) -> Point3<f64> {
-        self.warp_with(p, &self.influences(p))
+    /// Warps a point of time `time`, Eq. (5): `φ(v) = Σ w_n [R_n (v − g_n) + g_n + t_n]`.
+    pub fn warp_point(&self, p: &Point3<f64>, time: u32) -> Point3<f64> {
+        self.warp_with(p, &self.influences(p, time))
     }
 
     /// Warps a normal at point `p`, Eq. (6): `n' = normalize(Σ w_n R_n⁻ᵀ n)`.
-    pub fn warp_normal(&self, p: &Point3<f64>, n: &Vector3<f64>) -> Vector3<f64> {
-        let infl = self.influences(p);
+    pub fn warp_normal(&self, p: &Point3<f64>, n: &Vector3<f64>, time: u32) -> Vector3<f64> {
+        let infl = self.influences(p, time);
         self.warp_normal_with(n, &infl)
     }
 
@@ -104,11 +135,11 @@ impl Deformation {
         if len > 1e-12 { out / len } else { *n }
     }
 
-    /// Warps a camera pose: its position as a point, its rotation by the SVD-orthonormalised
-    /// blend `Σ w_n R_n` (ElasticFusion's pose update).
-    pub fn warp_pose(&self, t_world_cam: &Iso3) -> Iso3 {
+    /// Warps a camera pose of frame `time`: its position as a point, its rotation by the
+    /// SVD-orthonormalised blend `Σ w_n R_n` (ElasticFusion's pose update).
+    pub fn warp_pose(&self, t_world_cam: &Iso3, time: u32) -> Iso3 {
         let p = Point3::from(t_world_cam.translation.vector);
-        let infl = self.influences(&p);
+        let infl = self.influences(&p, time);
         if infl.is_empty() {
             return *t_world_cam;
         }
@@ -148,7 +179,7 @@ mod tests {
                 nodes.push(DeformationNode::identity(Point3::new(i as f64 * 0.01, j as f64 * 0.01, 0.0), 0));
             }
         }
-        Deformation { nodes, k }
+        Deformation::new(nodes, k, None)
     }
 
     proptest! {
@@ -156,14 +187,14 @@ mod tests {
         fn identity_deformation_is_a_no_op(x in -0.01f64..0.05, y in -0.01f64..0.05, z in -0.01f64..0.01) {
             let d = grid(4);
             let p = Point3::new(x, y, z);
-            prop_assert!((d.warp_point(&p) - p).norm() < 1e-12);
+            prop_assert!((d.warp_point(&p, 0) - p).norm() < 1e-12);
             let n = Vector3::new(0.3, -0.2, 0.9).normalize();
-            prop_assert!((d.warp_normal(&p, &n) - n).norm() < 1e-12);
+            prop_assert!((d.warp_normal(&p, &n, 0) - n).norm() < 1e-12);
         }
 
         #[test]
         fn weights_sum_to_one(x in -0.01f64..0.05, y in -0.01f64..0.05) {
-            let w = grid(4).influences(&Point3::new(x, y, 0.003));
+            let w = grid(4).influences(&Point3::new(x, y, 0.003), 0);
             prop_assert_eq!(w.len(), 4);
             prop_assert!((w.iter().map(|x| x.1).sum::<f64>() - 1.0).abs() < 1e-12);
         }
@@ -180,13 +211,38 @@ mod tests {
             n.translation_m = rot * n.position_m.coords + shift - n.position_m.coords;
         }
         let p = Point3::new(0.013, 0.021, 0.002);
-        assert!((d.warp_point(&p) - (rot * p + shift)).norm() < 1e-12);
+        assert!((d.warp_point(&p, 0) - (rot * p + shift)).norm() < 1e-12);
         let n = Vector3::new(0.0, 0.6, 0.8);
-        assert!((d.warp_normal(&p, &n) - rot * n).norm() < 1e-12);
+        assert!((d.warp_normal(&p, &n, 0) - rot * n).norm() < 1e-12);
         let pose = Iso3::translation(0.01, 0.01, -0.02);
-        let warped = d.warp_pose(&pose);
+        let warped = d.warp_pose(&pose, 0);
         assert!((warped.rotation.to_rotation_matrix().matrix() - rot.matrix()).norm() < 1e-9);
         assert!((warped.translation.vector - (rot * pose.translation.vector + shift)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn a_time_window_keeps_crossing_surfaces_apart() {
+        // Two layers of nodes at the same place, an old one (t0 0..16) that stays and a new one
+        // (t0 100..116) that moves by 2 mm: with a window of 16, a point of time 3 or 120 follows
+        // its own layer only.
+        let old = grid(4).nodes;
+        let new: Vec<DeformationNode> =
+            old.iter().enumerate().map(|(i, n)| DeformationNode { t0: 100 + i as u32, translation_m: Vector3::new(0.0, 0.0, 0.002), ..*n }).collect();
+        let old: Vec<DeformationNode> = old.iter().enumerate().map(|(i, n)| DeformationNode { t0: i as u32, ..*n }).collect();
+        let p = Point3::new(0.012, 0.017, 0.0);
+        let windowed = Deformation::new([new.clone(), old.clone()].concat(), 4, Some(16));
+        assert!((windowed.warp_point(&p, 3) - p).norm() < 1e-12, "an old point stays");
+        assert!((windowed.warp_point(&p, 120) - (p + Vector3::new(0.0, 0.0, 0.002))).norm() < 1e-12, "a new point moves");
+        let spatial = Deformation::new([new, old].concat(), 4, None);
+        let mixed = spatial.warp_point(&p, 3).z;
+        assert!(mixed > 0.0 && mixed < 0.002, "without a window the layers mix: {mixed}");
+        // The window is the m nodes up to the nearest in time, completed forward.
+        assert_eq!(windowed.candidates(0), 0..16);
+        assert_eq!(windowed.candidates(108), 9..25);
+        assert_eq!(windowed.candidates(200), 16..32);
+        assert_eq!(windowed.candidates(20), 0..16);
+        assert_eq!(windowed.candidates(57), 0..16, "node 15 (t0 15) is nearer than node 16 (t0 100)");
+        assert_eq!(windowed.candidates(58), 1..17, "node 16 is nearer");
     }
 
     #[test]

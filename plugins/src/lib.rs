@@ -4,6 +4,7 @@
 //! `register!` line at its end. Binaries and tests call [`link`] so that the linker keeps this
 //! crate (and its registrations).
 
+pub mod close;
 pub mod common;
 pub mod depth;
 pub mod fuse;

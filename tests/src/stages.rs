@@ -97,7 +97,7 @@ impl Fuser for PointFuser {
     fn deform(&mut self, closure: &LoopClosure, _ctx: &mut Context) -> Result<(), StageError> {
         for s in &mut self.surfels {
             let p = s.position_m.cast::<f64>();
-            let infl = closure.deformation.influences(&p);
+            let infl = closure.deformation.influences(&p, s.t0);
             s.normal = closure.deformation.warp_normal_with(&s.normal.cast(), &infl).cast();
             s.position_m = closure.deformation.warp_with(&p, &infl).cast();
         }
@@ -156,7 +156,7 @@ impl LoopCloser for ShiftCloser {
             .map(|s| DeformationNode { translation_m: shift, ..DeformationNode::identity(s.position_m.cast(), s.t0) })
             .collect();
         let t_world_cam = Iso3::from_parts((input.t_world_cam.translation.vector + shift).into(), input.t_world_cam.rotation);
-        Ok(Some(LoopClosure { deformation: Deformation { nodes, k: 4 }, t_world_cam }))
+        Ok(Some(LoopClosure { deformation: Deformation::new(nodes, 4, None), t_world_cam }))
     }
 }
 

@@ -228,8 +228,8 @@ impl Pipeline {
                     .map_err(|e| stage_err(idx, lname, e))?;
                 if let Some(c) = closure {
                     fuser.deform(&c, &mut Context::new(idx, rig, prediction, &mut fctx)).map_err(|e| stage_err(idx, fname, e))?;
-                    for p in &mut self.trajectory {
-                        p.t_world_cam = c.deformation.warp_pose(&p.t_world_cam);
+                    for (i, p) in self.trajectory.iter_mut().enumerate() {
+                        p.t_world_cam = c.deformation.warp_pose(&p.t_world_cam, i as u32);
                     }
                     pose = c.t_world_cam;
                     self.loop_closures += 1;

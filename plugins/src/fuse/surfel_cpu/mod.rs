@@ -222,7 +222,7 @@ impl Fuser for SurfelCpu {
         let d = &closure.deformation;
         self.surfels.par_iter_mut().for_each(|s| {
             let p = s.position_m.cast::<f64>();
-            let infl = d.influences(&p);
+            let infl = d.influences(&p, s.t0);
             s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
             s.position_m = d.warp_with(&p, &infl).cast();
         });

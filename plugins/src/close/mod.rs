@@ -1,0 +1,3 @@
+//! Loop closers.
+
+pub mod deformation;
