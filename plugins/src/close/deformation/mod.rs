@@ -1,8 +1,183 @@
 //! `deformation`: local loop closure between the active and the inactive model and the
 //! non-rigid correction of the map by an embedded deformation graph (the paper's "Deformation
 //! graph" and "Loop closure"; ElasticFusion, `shared/design/elasticfusion.md` §4–5).
+//!
+//! Every tracked frame, with the active and inactive predictions rendered at the tracked pose T:
+//! 1. registration: the active prediction plays the live frame and the inactive one the model,
+//!    in a fresh `icp-rgb` (no motion prior, photometric reference = the model) started at T;
+//!    result T_est ([`detect`]);
+//! 2. checks (organ-scale parameters): the inactive model overlaps the active view, enough ICP
+//!    inliers, a small residual, a well-determined pose (covariance), a small correction;
+//! 3. on acceptance: surface constraints on a grid of the active view, `T v → T_est v` at the
+//!    current time, and pins holding the inactive surface where it is, at its own time (the
+//!    older map is the reference, as in ElasticFusion); the graph is sampled from the map (every
+//!    n-th surfel in time order, at most `max_nodes`), optimised ([`graph`]) and returned with
+//!    the corrected pose T_est. The pipeline deforms the map (positions and normals) and the
+//!    trajectory; the fuser reactivates the inactive surfels seen from T_est.
+//!
+//! Influence and edges follow ElasticFusion's time windows (`window`), so an old surface and
+//! the new one that meets it are moved by their own nodes.
 
+pub mod detect;
 pub mod graph;
+
+use capsule_slam_framework::deformation::DeformationNode;
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::stage::{LoopClosure, LoopInput};
+use capsule_slam_framework::{Context, Fuser, LoopCloser, Plugin, StageError, register};
+
+use detect::{Checks, Registration, constraints, register_models};
+use graph::{Edges, Graph, GraphWeights};
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of `deformation`.
+    pub struct DeformationParams {
+        /// Influencing nodes per point, k (ElasticFusion: 4).
+        pub k: u32 = 4; unit = "-"; range = 1.0..=16.0;
+        /// Candidate nodes per point, nearest in time (ElasticFusion: 20).
+        pub window: u32 = 20; unit = "nodes"; range = 2.0..=10000.0;
+        /// Graph edges per node (ElasticFusion: 4).
+        pub connectivity: u32 = 4; unit = "-"; range = 1.0..=16.0;
+        /// `space-in-window` (the nearest nodes in space among the time window) or `time`
+        /// (ElasticFusion: the nearest in time order).
+        pub edges: Edges = Edges::SpaceInWindow; unit = "-";
+        /// Most graph nodes (ElasticFusion: 1024, one per 5000 surfels).
+        pub max_nodes: u32 = 1024; unit = "nodes"; range = 5.0..=100000.0;
+        /// Fewest surfels per node.
+        pub min_surfels_per_node: u32 = 50; unit = "surfels"; range = 1.0..=1.0e7;
+        /// w_rot (ElasticFusion: 1).
+        pub w_rot: f64 = 1.0; unit = "-"; range = 0.0..=1.0e9;
+        /// w_reg (ElasticFusion: 10).
+        pub w_reg: f64 = 10.0; unit = "-"; range = 0.0..=1.0e9;
+        /// w_con (ElasticFusion: 100).
+        pub w_con: f64 = 100.0; unit = "-"; range = 0.0..=1.0e9;
+        /// Position residuals are divided by this (ElasticFusion: 1 m implicitly, room scale).
+        pub length_unit_m: f64 = 0.01; unit = "m"; range = 1.0e-6..=100.0;
+        /// Most Gauss-Newton iterations of the graph (ElasticFusion: 3).
+        pub iterations: u32 = 5; unit = "-"; range = 1.0..=100.0;
+        /// Surface constraints every this many pixels of the active view in x and y
+        /// (ElasticFusion: 20 px at 640×480, 768 samples).
+        pub constraint_stride_px: u32 = 10; unit = "px"; range = 1.0..=200.0;
+        /// Pin the inactive surface at each constraint (ElasticFusion: first closure only,
+        /// plus freezing older nodes).
+        pub pins: bool = true; unit = "-";
+        /// Reject when the inactive model covers less than this share of the active view.
+        pub min_overlap: f64 = 0.2; unit = "-"; range = 0.0..=1.0;
+        /// Reject when fewer than this share of the active pixels are ICP inliers
+        /// (ElasticFusion: 35 000 of 307 200 pixels).
+        pub min_inlier_share: f64 = 0.15; unit = "-"; range = 0.0..=1.0;
+        /// Reject when the ICP RMS residual exceeds this (ElasticFusion: 5e-5 mean squared,
+        /// about 1 cm RMS at room scale).
+        pub max_residual_m: f64 = 0.0005; unit = "m"; range = 0.0..=1.0;
+        /// Reject when a translation standard deviation of T_est exceeds this (ElasticFusion:
+        /// covariance diagonals < 1e-5).
+        pub max_std_m: f64 = 0.0005; unit = "m"; range = 0.0..=1.0;
+        /// Reject when a rotation standard deviation of T_est exceeds this.
+        pub max_std_rad: f64 = 0.01; unit = "rad"; range = 0.0..=3.15;
+        /// Reject when the correction moves the camera farther than this (a local loop
+        /// closure corrects drift, not relocalises).
+        pub max_correction_m: f64 = 0.005; unit = "m"; range = 0.0..=1.0;
+        /// Reject a correction below this (nothing to close).
+        pub min_correction_m: f64 = 0.0001; unit = "m"; range = 0.0..=1.0;
+        /// Noise scale of the registration's point-to-plane residual (model depths are fused,
+        /// hence measured-like).
+        pub sigma_icp_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
+        /// Weight of the registration's photometric term.
+        pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
+        /// Registration ICP correspondence gate.
+        pub icp_gate_m: f64 = 0.004; unit = "m"; range = 0.0..=1.0;
+    }
+}
+
+/// The local loop closer.
+pub struct DeformationCloser {
+    params: DeformationParams,
+}
+
+impl Plugin for DeformationCloser {
+    const NAME: &'static str = "deformation";
+    const SUMMARY: &'static str = "local loop closure (active vs inactive model registered by icp-rgb, organ-scale checks) and embedded deformation graph (E_rot + E_reg + E_con, faer sparse Cholesky)";
+    type Params = DeformationParams;
+
+    fn build(params: DeformationParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        Ok(Self { params })
+    }
+}
+
+impl DeformationCloser {
+    /// The closer with these parameters.
+    pub fn new(params: DeformationParams) -> Self {
+        Self { params }
+    }
+
+    fn checks(&self) -> Checks {
+        let p = &self.params;
+        Checks {
+            min_overlap: p.min_overlap,
+            min_inlier_share: p.min_inlier_share,
+            max_residual_m: p.max_residual_m,
+            max_std_m: p.max_std_m,
+            max_std_rad: p.max_std_rad,
+            max_correction_m: p.max_correction_m,
+            min_correction_m: p.min_correction_m,
+        }
+    }
+
+    fn weights(&self) -> GraphWeights {
+        let p = &self.params;
+        GraphWeights { rot: p.w_rot, reg: p.w_reg, con: p.w_con, length_unit_m: p.length_unit_m, iterations: p.iterations as usize }
+    }
+}
+
+impl LoopCloser for DeformationCloser {
+    fn close(&mut self, input: &LoopInput<'_>, map: &dyn Fuser, ctx: &mut Context) -> Result<Option<LoopClosure>, StageError> {
+        let p = &self.params;
+        let clock = std::time::Instant::now();
+        let reg: Registration = register_models(input.active, input.inactive, input.t_world_cam, &self.checks(), p, ctx)?;
+        ctx.count("ms_registration", clock.elapsed().as_secs_f64() * 1e3);
+        ctx.count("overlap", reg.overlap);
+        let Some(t_est) = reg.accepted else {
+            if reg.overlap >= p.min_overlap {
+                ctx.count("rejected", 1.0);
+            }
+            return Ok(None);
+        };
+        let clock = std::time::Instant::now();
+        let cons = constraints(
+            input.active,
+            input.inactive,
+            input.t_world_cam,
+            &t_est,
+            input.frame.index as u32,
+            p.constraint_stride_px as usize,
+            p.pins,
+            ctx.rig.camera(),
+        );
+        let snap = map.snapshot()?;
+        let step = snap.len().div_ceil(p.max_nodes as usize).max(p.min_surfels_per_node as usize).max(1);
+        let nodes: Vec<DeformationNode> = snap.surfels.iter().step_by(step).map(|s| DeformationNode::identity(s.position_m.cast(), s.t0)).collect();
+        if nodes.len() <= p.k as usize || cons.is_empty() {
+            ctx.count("rejected", 1.0);
+            return Ok(None);
+        }
+        let mut graph = Graph::new(nodes, p.k as usize, Some(p.window as usize), p.connectivity as usize, p.edges);
+        for c in cons {
+            graph.constrain(c);
+        }
+        let solution = graph.optimise(&self.weights())?;
+        ctx.count("ms_graph", clock.elapsed().as_secs_f64() * 1e3);
+        ctx.count("nodes", graph.deformation.nodes.len() as f64);
+        ctx.count("constraints", graph.constraints() as f64);
+        ctx.count("energy_before", solution.energy_before);
+        ctx.count("energy_after", solution.energy_after);
+        ctx.count("accepted", 1.0);
+        Ok(Some(LoopClosure { deformation: graph.deformation, t_world_cam: t_est }))
+    }
+}
+
+register!(LoopCloser, DeformationCloser);
 
 #[cfg(test)]
 mod graph_tests;
+#[cfg(test)]
+mod tests;

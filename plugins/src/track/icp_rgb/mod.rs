@@ -169,6 +169,11 @@ impl Plugin for IcpRgb {
 }
 
 impl IcpRgb {
+    /// A tracker with no history (no previous frame, no velocity).
+    pub fn new(params: IcpRgbParams) -> Self {
+        Self { params, previous: None, velocity: None }
+    }
+
     fn prep(&self) -> DepthPrep {
         let p = &self.params;
         DepthPrep {

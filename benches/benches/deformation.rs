@@ -1,0 +1,43 @@
+//! The deformation graph (issue 7): the Gauss-Newton solve against the node count (64 to 4096
+//! nodes on a curved sheet with one surface constraint and one pin per node, as a closure
+//! gives), one factorisation per iteration.
+
+use capsule_slam_framework::deformation::DeformationNode;
+use capsule_slam_plugins::close::deformation::graph::{Constraint, Edges, Graph, GraphWeights};
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use nalgebra::{Point3, Vector3};
+
+/// `n` nodes on a 40 mm square sheet, in sweep (time) order, plus one constraint per node that
+/// bends the newer half by up to 1 mm and one pin per node that holds the older half.
+fn graph(n: usize) -> Graph {
+    let side = (n as f64).sqrt().ceil() as usize;
+    let step = 0.04 / side as f64;
+    let nodes: Vec<DeformationNode> =
+        (0..n).map(|i| DeformationNode::identity(Point3::new((i / side) as f64 * step, (i % side) as f64 * step, 0.03), (i / side) as u32)).collect();
+    let mut g = Graph::new(nodes.clone(), 4, Some(20), 4, Edges::SpaceInWindow);
+    let half = (side / 2) as u32;
+    for node in &nodes {
+        let p = node.position_m + Vector3::new(0.3 * step, 0.4 * step, 0.0);
+        if node.t0 >= half {
+            let bend = 0.001 * ((node.t0 - half) as f64 / half.max(1) as f64).powi(2);
+            g.constrain(Constraint { source_m: p, target_m: p + Vector3::new(0.0, 0.0, bend), time: node.t0 });
+        } else {
+            g.constrain(Constraint { source_m: p, target_m: p, time: node.t0 });
+        }
+    }
+    g
+}
+
+fn solve(c: &mut Criterion) {
+    let mut group = c.benchmark_group("deformation-graph-solve");
+    group.sample_size(10);
+    for n in [64usize, 256, 1024, 4096] {
+        group.bench_with_input(BenchmarkId::from_parameter(n), &n, |b, &n| {
+            b.iter_batched(|| graph(n), |mut g| g.optimise(&GraphWeights::default()).unwrap_or_else(|e| panic!("{e}")), criterion::BatchSize::LargeInput)
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, solve);
+criterion_main!(benches);
