@@ -4,6 +4,7 @@
 
 pub mod maps;
 pub mod pyramid;
+pub mod sparse_llt;
 
 use capsule_slam_framework::StageError;
 

@@ -16,14 +16,17 @@
 //! Gauss-Newton: the normal equations `JᵀJ δ = −Jᵀr` by faer's sparse Cholesky, the symbolic
 //! analysis once per graph, a numeric factorisation per iteration.
 
-use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
 use faer::sparse::{SparseColMat, Triplet};
-use faer::{Mat, Side};
 use nalgebra::{Matrix3, Point3, Vector3};
 
 use capsule_slam_framework::StageError;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode};
+
+use crate::common::sparse_llt::SparseLlt;
+
+/// Force the simplicial factorisation: no (faer's supernodal choice is 1.3–5× faster here;
+/// `cargo bench -p capsule-slam-benches --bench deformation`).
+const SIMPLICIAL: bool = false;
 
 /// Unknowns per node.
 pub const UNKNOWNS: usize = 12;
@@ -235,7 +238,7 @@ impl Graph {
         pairs.dedup();
         let trips: Vec<Triplet<usize, usize, f64>> = pairs.iter().map(|&(r, c)| Triplet::new(r, c, 0.0)).collect();
         let mut a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trips).map_err(solver_error)?;
-        let symbolic = SymbolicLlt::try_new(a.symbolic(), Side::Lower).map_err(solver_error)?;
+        let mut llt = SparseLlt::new(a.symbolic(), SIMPLICIAL).map_err(solver_error)?;
         let col_ptr: Vec<usize> = a.symbolic().col_ptr().to_vec();
         let row_idx: Vec<usize> = a.symbolic().row_idx().to_vec();
         let slot = |r: usize, c: usize| -> usize {
@@ -262,10 +265,10 @@ impl Graph {
             for k in 0..n {
                 vals[slot(k, k)] += 1e-9;
             }
-            let llt = Llt::try_new_with_symbolic(symbolic.clone(), a.as_ref(), Side::Lower).map_err(solver_error)?;
+            llt.factorize(a.as_ref()).map_err(solver_error)?;
             factorisations += 1;
-            let step = llt.solve(&Mat::from_fn(n, 1, |i, _| -g[i]));
-            let step: Vec<f64> = (0..n).map(|i| step[(i, 0)]).collect();
+            let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
+            llt.solve_in_place(&mut step).map_err(solver_error)?;
             let mut scale = 1.0;
             let mut improved = false;
             for _ in 0..5 {
