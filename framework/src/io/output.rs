@@ -38,6 +38,9 @@ pub struct Summary {
     pub loop_closures: usize,
     /// Mean of every counter the stages reported, keyed `plugin.counter`.
     pub counters_mean: BTreeMap<String, f64>,
+    /// Sum of every counter over the frames that reported it (event counts such as
+    /// `deformation.accepted`).
+    pub counters_sum: BTreeMap<String, f64>,
     /// ATE RMSE after SE(3) alignment, metres, when the input has ground truth.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ate_rmse_m: Option<f64>,
@@ -81,7 +84,8 @@ impl Summary {
             surfels: last.map_or(0, |r| r.map.total),
             surfels_active: last.map_or(0, |r| r.map.active),
             loop_closures: records.iter().filter(|r| r.loop_closed).count(),
-            counters_mean: sums.into_iter().map(|(k, (s, n))| (k, s / n as f64)).collect(),
+            counters_mean: sums.iter().map(|(k, (s, n))| (k.clone(), s / *n as f64)).collect(),
+            counters_sum: sums.into_iter().map(|(k, (s, _))| (k, s)).collect(),
             ..Self::default()
         }
     }

@@ -38,6 +38,8 @@ pub struct Registration {
     pub accepted: Option<Iso3>,
     /// Why it was rejected (empty when accepted or when there was no overlap to try).
     pub reason: String,
+    /// The check that failed, as a counter name (`inliers`, `residual`, ...; empty if none).
+    pub reason_key: &'static str,
 }
 
 /// Registers `active` (as the live frame) to `inactive` (as the model), both rendered at
@@ -54,7 +56,7 @@ pub fn register_models(
     let both = active.depth_m.data().iter().zip(inactive.depth_m.data()).filter(|(a, i)| **a > 0.0 && **i > 0.0).count();
     let overlap = if active_px == 0 { 0.0 } else { both as f64 / active_px as f64 };
     if overlap < checks.min_overlap || active.depth_m.size() != inactive.depth_m.size() {
-        return Ok(Registration { overlap, accepted: None, reason: String::new() });
+        return Ok(Registration { overlap, accepted: None, reason: String::new(), reason_key: "" });
     }
     let frame = RgbdFrame {
         depth_source: DepthSource::Measured,
@@ -93,38 +95,56 @@ pub fn register_models(
     ctx.count("inlier_share", inlier_share);
     ctx.count("residual_mm", tr.residual_rms * 1e3);
     ctx.count("correction_mm", correction * 1e3);
-    let reason = if tr.status != TrackStatus::Tracked {
-        "registration lost".to_owned()
+    let (reason_key, reason) = if tr.status != TrackStatus::Tracked {
+        ("lost", "registration lost".to_owned())
     } else if inlier_share < checks.min_inlier_share {
-        format!("{:.0} % inliers < {:.0} %", inlier_share * 100.0, checks.min_inlier_share * 100.0)
+        ("inliers", format!("{:.0} % inliers < {:.0} %", inlier_share * 100.0, checks.min_inlier_share * 100.0))
     } else if tr.residual_rms.is_nan() || tr.residual_rms > checks.max_residual_m {
-        format!("residual {:.3} mm > {:.3} mm", tr.residual_rms * 1e3, checks.max_residual_m * 1e3)
+        ("residual", format!("residual {:.3} mm > {:.3} mm", tr.residual_rms * 1e3, checks.max_residual_m * 1e3))
     } else if std_t.is_nan() || std_r.is_nan() || std_t > checks.max_std_m || std_r > checks.max_std_rad {
-        format!("pose uncertain (σ {:.3} mm, {:.4} rad)", std_t * 1e3, std_r)
+        ("uncertain", format!("pose uncertain (σ {:.3} mm, {:.4} rad)", std_t * 1e3, std_r))
     } else if correction > checks.max_correction_m {
-        format!("correction {:.2} mm > {:.2} mm", correction * 1e3, checks.max_correction_m * 1e3)
+        ("large_correction", format!("correction {:.2} mm > {:.2} mm", correction * 1e3, checks.max_correction_m * 1e3))
     } else if correction < checks.min_correction_m {
-        format!("correction {:.3} mm: nothing to close", correction * 1e3)
+        ("small_correction", format!("correction {:.3} mm: nothing to close", correction * 1e3))
     } else {
-        String::new()
+        ("", String::new())
     };
-    Ok(Registration { overlap, accepted: reason.is_empty().then_some(tr.t_world_cam), reason })
+    Ok(Registration { overlap, accepted: reason.is_empty().then_some(tr.t_world_cam), reason, reason_key })
 }
 
-/// Surface constraints of an accepted closure: on a grid of `stride_px` over the pixels where
-/// both models have a surface, the active point `v` (camera frame) goes from `T v` to `T_est v`
-/// at time `now`; with `pins`, `T_est v` also stays where it is at the inactive surfel's time.
+/// Which model stays where it is at a closure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Reference {
+    /// The older, inactive model (ElasticFusion: drift is in the newer part): the active
+    /// surface and the camera move onto it.
+    Old,
+    /// The recent, active model (a deforming organ: the current view is its current shape):
+    /// the inactive surface moves onto it and the camera stays.
+    Recent,
+}
+
+/// Surface constraints of an accepted closure, on a grid of `stride_px` over the pixels where
+/// both models have a surface. With `C = T_est T⁻¹` the world correction that carries the
+/// active model onto the inactive one: `Reference::Old` moves each active point `p = T v` to
+/// `C p` and (with `pins`) holds `C p` at the inactive surfel's time; `Reference::Recent` moves
+/// each inactive point `q` to `C⁻¹ q` and holds the active point `p`. Each point carries the
+/// creation time t0 of the surfel it samples, so a constraint is felt by the nodes that will
+/// warp that surfel (ElasticFusion gives the active points the current time instead).
 #[allow(clippy::too_many_arguments, reason = "the closure's inputs, each needed once")]
 pub fn constraints(
     active: &ModelView,
     inactive: &ModelView,
     t_world_cam: &Iso3,
     t_est: &Iso3,
-    now: u32,
     stride_px: usize,
     pins: bool,
+    reference: Reference,
     cam: &PinholeCamera,
 ) -> Vec<Constraint> {
+    let correction = t_est * t_world_cam.inverse();
+    let undo = correction.inverse();
     let (w, h) = active.depth_m.size();
     let s = stride_px.max(1);
     let mut out = Vec::new();
@@ -134,11 +154,23 @@ pub fn constraints(
             if !(d > 0.0 && di > 0.0) {
                 continue;
             }
-            let v = cam.unproject(x as f64, y as f64, f64::from(d));
-            let target = t_est * v;
-            out.push(Constraint { source_m: t_world_cam * v, target_m: target, time: now });
-            if pins {
-                out.push(Constraint { source_m: target, target_m: target, time: inactive.t0.at(x, y) });
+            let p = t_world_cam * cam.unproject(x as f64, y as f64, f64::from(d));
+            let (now, then) = (active.t0.at(x, y), inactive.t0.at(x, y));
+            match reference {
+                Reference::Old => {
+                    let target = correction * p;
+                    out.push(Constraint { source_m: p, target_m: target, time: now });
+                    if pins {
+                        out.push(Constraint { source_m: target, target_m: target, time: then });
+                    }
+                }
+                Reference::Recent => {
+                    let q = t_world_cam * cam.unproject(x as f64, y as f64, f64::from(di));
+                    out.push(Constraint { source_m: q, target_m: undo * q, time: then });
+                    if pins {
+                        out.push(Constraint { source_m: p, target_m: p, time: now });
+                    }
+                }
             }
         }
     }

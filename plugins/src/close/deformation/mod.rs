@@ -8,12 +8,14 @@
 //!    result T_est ([`detect`]);
 //! 2. checks (organ-scale parameters): the inactive model overlaps the active view, enough ICP
 //!    inliers, a small residual, a well-determined pose (covariance), a small correction;
-//! 3. on acceptance: surface constraints on a grid of the active view, `T v → T_est v` at the
-//!    current time, and pins holding the inactive surface where it is, at its own time (the
-//!    older map is the reference, as in ElasticFusion); the graph is sampled from the map (every
-//!    n-th surfel in time order, at most `max_nodes`), optimised ([`graph`]) and returned with
-//!    the corrected pose T_est. The pipeline deforms the map (positions and normals) and the
-//!    trajectory; the fuser reactivates the inactive surfels seen from T_est.
+//! 3. on acceptance: surface constraints on a grid of the view where both models have a surface,
+//!    and pins on the reference model (`reference`: `old`, ElasticFusion's choice, moves the
+//!    active surface and the camera onto the inactive one; `recent` moves the inactive surface
+//!    onto the current view, the camera stays), each point at the creation time of the surfel it
+//!    samples; the graph is sampled from the map (every n-th surfel in time order, at most
+//!    `max_nodes`), optimised ([`graph`]) and returned with the corrected pose. The pipeline
+//!    deforms the map (positions and normals) and the trajectory; the fuser reactivates the
+//!    inactive surfels seen from the corrected pose.
 //!
 //! Influence and edges follow ElasticFusion's time windows (`window`), so an old surface and
 //! the new one that meets it are moved by their own nodes.
@@ -26,6 +28,7 @@ use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{LoopClosure, LoopInput};
 use capsule_slam_framework::{Context, Fuser, LoopCloser, Plugin, StageError, register};
 
+pub use detect::Reference;
 use detect::{Checks, Registration, constraints, register_models};
 use graph::{Edges, Graph, GraphWeights};
 
@@ -58,9 +61,12 @@ capsule_slam_framework::plugin_params! {
         /// Surface constraints every this many pixels of the active view in x and y
         /// (ElasticFusion: 20 px at 640×480, 768 samples).
         pub constraint_stride_px: u32 = 10; unit = "px"; range = 1.0..=200.0;
-        /// Pin the inactive surface at each constraint (ElasticFusion: first closure only,
+        /// Pin the reference surface at each constraint (ElasticFusion: first closure only,
         /// plus freezing older nodes).
         pub pins: bool = true; unit = "-";
+        /// Which model stays: `old` (ElasticFusion: the active surface and the camera move onto
+        /// the inactive one) or `recent` (the inactive surface moves onto the current view).
+        pub reference: Reference = Reference::Old; unit = "-";
         /// Reject when the inactive model covers less than this share of the active view.
         pub min_overlap: f64 = 0.2; unit = "-"; range = 0.0..=1.0;
         /// Reject when fewer than this share of the active pixels are ICP inliers
@@ -137,22 +143,14 @@ impl LoopCloser for DeformationCloser {
         ctx.count("ms_registration", clock.elapsed().as_secs_f64() * 1e3);
         ctx.count("overlap", reg.overlap);
         let Some(t_est) = reg.accepted else {
-            if reg.overlap >= p.min_overlap {
+            if !reg.reason.is_empty() {
                 ctx.count("rejected", 1.0);
+                ctx.count(&format!("rejected_{}", reg.reason_key), 1.0);
             }
             return Ok(None);
         };
         let clock = std::time::Instant::now();
-        let cons = constraints(
-            input.active,
-            input.inactive,
-            input.t_world_cam,
-            &t_est,
-            input.frame.index as u32,
-            p.constraint_stride_px as usize,
-            p.pins,
-            ctx.rig.camera(),
-        );
+        let cons = constraints(input.active, input.inactive, input.t_world_cam, &t_est, p.constraint_stride_px as usize, p.pins, p.reference, ctx.rig.camera());
         let snap = map.snapshot()?;
         let step = snap.len().div_ceil(p.max_nodes as usize).max(p.min_surfels_per_node as usize).max(1);
         let nodes: Vec<DeformationNode> = snap.surfels.iter().step_by(step).map(|s| DeformationNode::identity(s.position_m.cast(), s.t0)).collect();
@@ -171,7 +169,11 @@ impl LoopCloser for DeformationCloser {
         ctx.count("energy_before", solution.energy_before);
         ctx.count("energy_after", solution.energy_after);
         ctx.count("accepted", 1.0);
-        Ok(Some(LoopClosure { deformation: graph.deformation, t_world_cam: t_est }))
+        let t_world_cam = match p.reference {
+            Reference::Old => t_est,
+            Reference::Recent => *input.t_world_cam,
+        };
+        Ok(Some(LoopClosure { deformation: graph.deformation, t_world_cam }))
     }
 }
 
