@@ -150,7 +150,17 @@ impl LoopCloser for DeformationCloser {
             return Ok(None);
         };
         let clock = std::time::Instant::now();
-        let cons = constraints(input.active, input.inactive, input.t_world_cam, &t_est, p.constraint_stride_px as usize, p.pins, p.reference, ctx.rig.camera());
+        let cons = constraints(
+            input.active,
+            input.inactive,
+            input.t_world_cam,
+            &t_est,
+            input.frame.index as u32,
+            p.constraint_stride_px as usize,
+            p.pins,
+            p.reference,
+            ctx.rig.camera(),
+        );
         let snap = map.snapshot()?;
         let step = snap.len().div_ceil(p.max_nodes as usize).max(p.min_surfels_per_node as usize).max(1);
         let nodes: Vec<DeformationNode> = snap.surfels.iter().step_by(step).map(|s| DeformationNode::identity(s.position_m.cast(), s.t0)).collect();

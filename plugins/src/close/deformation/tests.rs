@@ -58,10 +58,17 @@ fn scene() -> Scene {
     Scene { phantom, pose, old }
 }
 
-/// `surfels` moved by `motion` (world frame) and stamped new.
+/// `surfels` moved by `motion` (world frame) and stamped new (`NEW +` their old time).
 fn moved(surfels: &[Surfel], motion: &Iso3) -> Vec<Surfel> {
     let m = motion.cast::<f32>();
     surfels.iter().map(|s| Surfel { position_m: m * s.position_m, normal: m.rotation * s.normal, t0: NEW + s.t0, t: NEW + s.t0, ..*s }).collect()
+}
+
+/// The current frame: the time of the new surfel at the centre of the view (the camera is
+/// where the newest surface is).
+fn now(sc: &Scene, new: &[Surfel]) -> u32 {
+    let centre = sc.pose * nalgebra::Point3::new(0.0, 0.0, 0.03);
+    new.iter().min_by(|a, b| (a.position_m.cast::<f64>() - centre).norm().total_cmp(&(b.position_m.cast::<f64>() - centre).norm())).map_or(NEW, |s| s.t0)
 }
 
 fn close(sc: &Scene, new: &[Surfel], params: DeformationParams) -> (Option<LoopClosure>, StageReport) {
@@ -71,7 +78,7 @@ fn close(sc: &Scene, new: &[Surfel], params: DeformationParams) -> (Option<LoopC
     let map = Fixed(SurfelSet::new([sc.old.clone(), new.to_vec()].concat()));
     let rig = Rig::Mono(cam.clone());
     let frame = sc.phantom.render(150).to_rgbd(cam);
-    let frame = RgbdFrame { index: (NEW + 5) as usize, masks: Masks::new(), ..frame };
+    let frame = RgbdFrame { index: now(sc, new) as usize, masks: Masks::new(), ..frame };
     let mut report = StageReport::default();
     let input = LoopInput { frame: &frame, t_world_cam: &sc.pose, active: &active, inactive: &inactive };
     let out = DeformationCloser::new(params).close(&input, &map, &mut Context::new(frame.index, &rig, None, &mut report)).unwrap();
@@ -139,12 +146,8 @@ fn a_drifted_revisit_is_closed_and_bends_the_new_surface_onto_the_old() {
     assert!(n > 1000, "{n} surfels in view");
     assert!(moving < 0.25 * before, "new surface: {moving} m from the old after, {before} m before");
     assert!(fixed < 1e-4, "the old surface moved by {fixed} m");
-    // The camera moves with the new surface it was looking at (its time: that of the new
-    // surfel at the centre of the view).
-    let centre = sc.pose * nalgebra::Point3::new(0.0, 0.0, 0.03);
-    let time =
-        new.iter().min_by(|a, b| (a.position_m.cast::<f64>() - centre).norm().total_cmp(&(b.position_m.cast::<f64>() - centre).norm())).map_or(NEW, |s| s.t0);
-    let warped = def.warp_pose(&sc.pose, time);
+    // The camera moves with the new surface it is looking at.
+    let warped = def.warp_pose(&sc.pose, now(&sc, &new));
     assert!((warped.translation.vector - expected.translation.vector).norm() < 0.5 * (sc.pose.translation.vector - expected.translation.vector).norm());
 }
 
