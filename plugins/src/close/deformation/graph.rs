@@ -245,25 +245,41 @@ impl Graph {
             let (lo, hi) = (col_ptr[c], col_ptr[c + 1]);
             lo + row_idx[lo..hi].partition_point(|&x| x < r)
         };
+        // Where each product of a row's Jacobian entries lands in the matrix, in visiting order:
+        // the rows' structure never changes, so the searches are done once.
+        let mut slots = Vec::new();
+        self.visit(w, |_, row| {
+            for &(i, _) in row {
+                for &(k, _) in row {
+                    if i >= k {
+                        slots.push(slot(i, k));
+                    }
+                }
+            }
+        });
+        let diag: Vec<usize> = (0..n).map(|k| slot(k, k)).collect();
         let mut current = before;
         let mut factorisations = 0;
         for _ in 0..w.iterations {
             let vals = a.val_mut();
             vals.iter_mut().for_each(|v| *v = 0.0);
             let mut g = vec![0.0; n];
+            let mut next = slots.iter();
             self.visit(w, |r, row| {
                 for &(i, ji) in row {
                     g[i] += ji * r;
                     for &(k, jk) in row {
-                        if i >= k {
-                            vals[slot(i, k)] += ji * jk;
+                        if i >= k
+                            && let Some(&s) = next.next()
+                        {
+                            vals[s] += ji * jk;
                         }
                     }
                 }
             });
             // A tiny Levenberg term keeps nodes without constraints or edges solvable.
-            for k in 0..n {
-                vals[slot(k, k)] += 1e-9;
+            for &s in &diag {
+                vals[s] += 1e-9;
             }
             llt.factorize(a.as_ref()).map_err(solver_error)?;
             factorisations += 1;
