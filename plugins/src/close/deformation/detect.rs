@@ -27,6 +27,8 @@ pub struct Checks {
     pub max_correction_m: f64,
     /// Smallest camera correction worth a closure, metres.
     pub min_correction_m: f64,
+    /// Largest ratio of the ICP residual after the registration to the one before it.
+    pub max_residual_ratio: f64,
 }
 
 /// The outcome of registering the active model to the inactive one.
@@ -70,7 +72,7 @@ pub fn register_models(
         masks: Masks::new(),
         derived: Default::default(),
     };
-    let mut tracker = IcpRgb::new(IcpRgbParams {
+    let params = IcpRgbParams {
         motion_model: MotionModel::None,
         rgb_reference: RgbReference::Model,
         w_rgb: p.w_rgb,
@@ -81,7 +83,14 @@ pub fn register_models(
         max_residual_m: f64::MAX,
         max_jump_m: f64::MAX,
         ..IcpRgbParams::default()
-    });
+    };
+    // The residual where the models stand now (no iteration): a correction must explain the
+    // data much better than no correction, or it is the registration sliding along a weakly
+    // constrained direction.
+    let mut scratch0 = capsule_slam_framework::context::StageReport::default();
+    let still = IcpRgbParams { iterations_l0: 0, iterations_l1: 0, iterations_l2: 0, ..params.clone() };
+    let before = IcpRgb::new(still).track(&frame, Some(inactive), t_world_cam, &mut Context::new(ctx.frame_index, ctx.rig, None, &mut scratch0))?;
+    let mut tracker = IcpRgb::new(params);
     // The tracker's own counters and warnings stay in a scratch report: a rejected closure is
     // not a tracking failure.
     let mut scratch = capsule_slam_framework::context::StageReport::default();
@@ -95,6 +104,8 @@ pub fn register_models(
     ctx.count("inlier_share", inlier_share);
     ctx.count("residual_mm", tr.residual_rms * 1e3);
     ctx.count("correction_mm", correction * 1e3);
+    let ratio = tr.residual_rms / before.residual_rms;
+    ctx.count("residual_ratio", ratio);
     let (reason_key, reason) = if tr.status != TrackStatus::Tracked {
         ("lost", "registration lost".to_owned())
     } else if inlier_share < checks.min_inlier_share {
@@ -105,6 +116,8 @@ pub fn register_models(
         ("uncertain", format!("pose uncertain (σ {:.3} mm, {:.4} rad)", std_t * 1e3, std_r))
     } else if correction > checks.max_correction_m {
         ("large_correction", format!("correction {:.2} mm > {:.2} mm", correction * 1e3, checks.max_correction_m * 1e3))
+    } else if ratio.is_nan() || ratio > checks.max_residual_ratio {
+        ("unexplained", format!("residual {:.3} mm after, {:.3} mm before the correction", tr.residual_rms * 1e3, before.residual_rms * 1e3))
     } else if correction < checks.min_correction_m {
         ("small_correction", format!("correction {:.3} mm: nothing to close", correction * 1e3))
     } else {

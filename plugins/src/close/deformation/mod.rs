@@ -88,6 +88,9 @@ capsule_slam_framework::plugin_params! {
         /// motion, ATE and surface RMSE mm: 0.1 mm: 0.53, 0.17 / 2.92, 1.14; 0.5 mm: 0.34, 0.10 /
         /// 2.92, 1.14; 1 mm: 0.52, 0.16 / 3.82, 1.06 (no closer: 0.41, 0.08 / 3.37, 1.18).
         pub min_correction_m: f64 = 0.0005; unit = "m"; range = 0.0..=1.0;
+        /// Reject when the ICP residual after the correction is above this share of the one
+        /// before it (the correction does not explain the data: the registration slid).
+        pub max_residual_ratio: f64 = 0.5; unit = "-"; range = 0.0..=1.0e6;
         /// Noise scale of the registration's point-to-plane residual (model depths are fused,
         /// hence measured-like).
         pub sigma_icp_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
@@ -129,6 +132,7 @@ impl DeformationCloser {
             max_std_rad: p.max_std_rad,
             max_correction_m: p.max_correction_m,
             min_correction_m: p.min_correction_m,
+            max_residual_ratio: p.max_residual_ratio,
         }
     }
 

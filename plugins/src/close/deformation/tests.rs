@@ -135,6 +135,7 @@ fn a_drifted_revisit_is_closed_and_bends_the_new_surface_onto_the_old() {
     let new = moved(&sc.old, &d);
     let (closure, report) = close(&sc, &new, DeformationParams::default());
     let closure = closure.unwrap_or_else(|| panic!("rejected: {report:?}"));
+    assert!(report.counters["residual_ratio"] < 0.1, "the correction explains the drift: {report:?}");
     // The corrected pose undoes the drift: T_est = D⁻¹ T.
     let expected = d.inverse() * sc.pose;
     let pose_err = (closure.t_world_cam.translation.vector - expected.translation.vector).norm();
