@@ -4,32 +4,11 @@
 
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::frame::{DepthSource, Masks};
-use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus, Tracker};
+use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus};
 
 use super::DeformationParams;
 use super::graph::Constraint;
 use crate::track::icp_rgb::{IcpRgb, IcpRgbParams, MotionModel, RgbReference};
-
-/// Acceptance thresholds of a registration.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Checks {
-    /// Least share of the active view the inactive model must cover.
-    pub min_overlap: f64,
-    /// Least share of active pixels that are ICP inliers.
-    pub min_inlier_share: f64,
-    /// Largest ICP RMS residual, metres.
-    pub max_residual_m: f64,
-    /// Largest translation standard deviation, metres.
-    pub max_std_m: f64,
-    /// Largest rotation standard deviation, radians.
-    pub max_std_rad: f64,
-    /// Largest camera correction, metres.
-    pub max_correction_m: f64,
-    /// Smallest camera correction worth a closure, metres.
-    pub min_correction_m: f64,
-    /// Largest ratio of the ICP residual after the registration to the one before it.
-    pub max_residual_ratio: f64,
-}
 
 /// The outcome of registering the active model to the inactive one.
 #[derive(Debug, Clone, PartialEq)]
@@ -38,27 +17,25 @@ pub struct Registration {
     pub overlap: f64,
     /// The corrected pose, when every check passed.
     pub accepted: Option<Iso3>,
-    /// Why it was rejected (empty when accepted or when there was no overlap to try).
-    pub reason: String,
-    /// The check that failed, as a counter name (`inliers`, `residual`, ...; empty if none).
-    pub reason_key: &'static str,
+    /// The check that failed, as a counter name (`inliers`, `residual`, ...; `None` when
+    /// accepted or when there was too little overlap to try).
+    pub rejected: Option<&'static str>,
 }
 
 /// Registers `active` (as the live frame) to `inactive` (as the model), both rendered at
-/// `t_world_cam`, and applies the checks.
+/// `t_world_cam`, and applies the checks of `p`.
 pub fn register_models(
     active: &ModelView,
     inactive: &ModelView,
     t_world_cam: &Iso3,
-    checks: &Checks,
     p: &DeformationParams,
     ctx: &mut Context,
 ) -> Result<Registration, StageError> {
     let active_px = active.valid_pixels();
     let both = active.depth_m.data().iter().zip(inactive.depth_m.data()).filter(|(a, i)| **a > 0.0 && **i > 0.0).count();
     let overlap = if active_px == 0 { 0.0 } else { both as f64 / active_px as f64 };
-    if overlap < checks.min_overlap || active.depth_m.size() != inactive.depth_m.size() {
-        return Ok(Registration { overlap, accepted: None, reason: String::new(), reason_key: "" });
+    if overlap < p.min_overlap || active.depth_m.size() != inactive.depth_m.size() {
+        return Ok(Registration { overlap, accepted: None, rejected: None });
     }
     let frame = RgbdFrame {
         depth_source: DepthSource::Measured,
@@ -72,7 +49,7 @@ pub fn register_models(
         masks: Masks::new(),
         derived: Default::default(),
     };
-    let params = IcpRgbParams {
+    let mut tracker = IcpRgb::new(IcpRgbParams {
         motion_model: MotionModel::None,
         rgb_reference: RgbReference::Model,
         w_rgb: p.w_rgb,
@@ -83,18 +60,13 @@ pub fn register_models(
         max_residual_m: f64::MAX,
         max_jump_m: f64::MAX,
         ..IcpRgbParams::default()
-    };
-    // The residual where the models stand now (no iteration): a correction must explain the
-    // data much better than no correction, or it is the registration sliding along a weakly
-    // constrained direction.
-    let mut scratch0 = capsule_slam_framework::context::StageReport::default();
-    let still = IcpRgbParams { iterations_l0: 0, iterations_l1: 0, iterations_l2: 0, ..params.clone() };
-    let before = IcpRgb::new(still).track(&frame, Some(inactive), t_world_cam, &mut Context::new(ctx.frame_index, ctx.rig, None, &mut scratch0))?;
-    let mut tracker = IcpRgb::new(params);
+    });
     // The tracker's own counters and warnings stay in a scratch report: a rejected closure is
-    // not a tracking failure.
+    // not a tracking failure. With the registration comes the residual where the models stand
+    // now: a correction must explain the data much better than none, or it is the registration
+    // sliding along a weakly constrained direction.
     let mut scratch = capsule_slam_framework::context::StageReport::default();
-    let tr = tracker.track(&frame, Some(inactive), t_world_cam, &mut Context::new(ctx.frame_index, ctx.rig, None, &mut scratch))?;
+    let (tr, before) = tracker.register(&frame, Some(inactive), t_world_cam, true, &mut Context::new(ctx.frame_index, ctx.rig, None, &mut scratch))?;
     let inlier_share = tr.inliers as f64 / active_px as f64;
     let correction = (t_world_cam.inverse() * tr.t_world_cam).translation.vector.norm();
     let (std_t, std_r) = tr.covariance.map_or((f64::INFINITY, f64::INFINITY), |c| {
@@ -104,26 +76,26 @@ pub fn register_models(
     ctx.count("inlier_share", inlier_share);
     ctx.count("residual_mm", tr.residual_rms * 1e3);
     ctx.count("correction_mm", correction * 1e3);
-    let ratio = tr.residual_rms / before.residual_rms;
+    let ratio = tr.residual_rms / before.unwrap_or(f64::NAN);
     ctx.count("residual_ratio", ratio);
-    let (reason_key, reason) = if tr.status != TrackStatus::Tracked {
-        ("lost", "registration lost".to_owned())
-    } else if inlier_share < checks.min_inlier_share {
-        ("inliers", format!("{:.0} % inliers < {:.0} %", inlier_share * 100.0, checks.min_inlier_share * 100.0))
-    } else if tr.residual_rms.is_nan() || tr.residual_rms > checks.max_residual_m {
-        ("residual", format!("residual {:.3} mm > {:.3} mm", tr.residual_rms * 1e3, checks.max_residual_m * 1e3))
-    } else if std_t.is_nan() || std_r.is_nan() || std_t > checks.max_std_m || std_r > checks.max_std_rad {
-        ("uncertain", format!("pose uncertain (σ {:.3} mm, {:.4} rad)", std_t * 1e3, std_r))
-    } else if correction > checks.max_correction_m {
-        ("large_correction", format!("correction {:.2} mm > {:.2} mm", correction * 1e3, checks.max_correction_m * 1e3))
-    } else if ratio.is_nan() || ratio > checks.max_residual_ratio {
-        ("unexplained", format!("residual {:.3} mm after, {:.3} mm before the correction", tr.residual_rms * 1e3, before.residual_rms * 1e3))
-    } else if correction < checks.min_correction_m {
-        ("small_correction", format!("correction {:.3} mm: nothing to close", correction * 1e3))
+    let rejected = if tr.status != TrackStatus::Tracked {
+        Some("lost")
+    } else if inlier_share < p.min_inlier_share {
+        Some("inliers")
+    } else if tr.residual_rms.is_nan() || tr.residual_rms > p.max_residual_m {
+        Some("residual")
+    } else if std_t.is_nan() || std_r.is_nan() || std_t > p.max_std_m || std_r > p.max_std_rad {
+        Some("uncertain")
+    } else if correction > p.max_correction_m {
+        Some("large_correction")
+    } else if ratio.is_nan() || ratio > p.max_residual_ratio {
+        Some("unexplained")
+    } else if correction < p.min_correction_m {
+        Some("small_correction")
     } else {
-        ("", String::new())
+        None
     };
-    Ok(Registration { overlap, accepted: reason.is_empty().then_some(tr.t_world_cam), reason, reason_key })
+    Ok(Registration { overlap, accepted: rejected.is_none().then_some(tr.t_world_cam), rejected })
 }
 
 /// Which model stays where it is at a closure.

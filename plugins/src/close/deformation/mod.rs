@@ -29,7 +29,7 @@ use capsule_slam_framework::stage::{LoopClosure, LoopInput};
 use capsule_slam_framework::{Context, Fuser, LoopCloser, Plugin, StageError, register};
 
 pub use detect::Reference;
-use detect::{Checks, Registration, constraints, register_models};
+use detect::{Registration, constraints, register_models};
 use graph::{Edges, Graph, GraphWeights};
 
 capsule_slam_framework::plugin_params! {
@@ -122,20 +122,6 @@ impl DeformationCloser {
         Self { params }
     }
 
-    fn checks(&self) -> Checks {
-        let p = &self.params;
-        Checks {
-            min_overlap: p.min_overlap,
-            min_inlier_share: p.min_inlier_share,
-            max_residual_m: p.max_residual_m,
-            max_std_m: p.max_std_m,
-            max_std_rad: p.max_std_rad,
-            max_correction_m: p.max_correction_m,
-            min_correction_m: p.min_correction_m,
-            max_residual_ratio: p.max_residual_ratio,
-        }
-    }
-
     fn weights(&self) -> GraphWeights {
         let p = &self.params;
         GraphWeights { rot: p.w_rot, reg: p.w_reg, con: p.w_con, length_unit_m: p.length_unit_m, iterations: p.iterations as usize }
@@ -146,13 +132,13 @@ impl LoopCloser for DeformationCloser {
     fn close(&mut self, input: &LoopInput<'_>, map: &dyn Fuser, ctx: &mut Context) -> Result<Option<LoopClosure>, StageError> {
         let p = &self.params;
         let clock = std::time::Instant::now();
-        let reg: Registration = register_models(input.active, input.inactive, input.t_world_cam, &self.checks(), p, ctx)?;
+        let reg: Registration = register_models(input.active, input.inactive, input.t_world_cam, p, ctx)?;
         ctx.count("ms_registration", clock.elapsed().as_secs_f64() * 1e3);
         ctx.count("overlap", reg.overlap);
         let Some(t_est) = reg.accepted else {
-            if !reg.reason.is_empty() {
+            if let Some(check) = reg.rejected {
                 ctx.count("rejected", 1.0);
-                ctx.count(&format!("rejected_{}", reg.reason_key), 1.0);
+                ctx.count(&format!("rejected_{check}"), 1.0);
             }
             return Ok(None);
         };

@@ -218,6 +218,21 @@ const LEVELS: usize = 3;
 
 impl Tracker for IcpRgb {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
+        Ok(self.register(frame, model, t_world_prev, false, ctx)?.0)
+    }
+}
+
+impl IcpRgb {
+    /// [`Tracker::track`], and with `initial` also the level-0 ICP RMS residual at the prior
+    /// (before any iteration), from the same pyramids: how much the solution explains.
+    pub fn register(
+        &mut self,
+        frame: &RgbdFrame,
+        model: Option<&ModelView>,
+        t_world_prev: &Iso3,
+        initial: bool,
+        ctx: &mut Context,
+    ) -> Result<(TrackResult, Option<f64>), StageError> {
         let cam = ctx.rig.camera();
         let prep = self.prep();
         let clock = std::time::Instant::now();
@@ -235,7 +250,7 @@ impl Tracker for IcpRgb {
         let Some(reference) = reference else {
             // Nothing to track against (the first frame): keep the prior.
             self.previous = Some(live);
-            return Ok(TrackResult::tracked(t_world_prev * prior));
+            return Ok((TrackResult::tracked(t_world_prev * prior), None));
         };
         let photo = match (self.params.rgb_reference, &self.previous) {
             (RgbReference::PreviousFrame, Some(p)) => p,
@@ -243,6 +258,7 @@ impl Tracker for IcpRgb {
         };
         let noise = self.depth_noise(frame.depth_source);
         let w = self.weights(&noise);
+        let initial = initial.then(|| accumulate(&live[0], &reference[0], &photo[0], &prior, &w, self.params.stride_l0 as usize).icp_rms());
         let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
         let mut t = prior;
         let mut total_iters = 0;
@@ -286,14 +302,15 @@ impl Tracker for IcpRgb {
             self.previous = Some(live);
             TrackStatus::Tracked
         };
-        Ok(TrackResult {
+        let result = TrackResult {
             t_world_cam: t_world_prev * t,
             status,
             inliers: fin.icp_n,
             residual_rms: fin.icp_rms(),
             covariance: fin.a.full().try_inverse(),
             iterations: total_iters as usize,
-        })
+        };
+        Ok((result, initial))
     }
 }
 
