@@ -53,10 +53,17 @@ pub struct SynthArgs {
     /// Also write contact_sheet.png with every 30th frame.
     #[arg(long)]
     pub contact_sheet: bool,
+    /// Also write this many flat-field calibration frames (a white target facing the capsule at
+    /// 25 mm, no ambient light) into `flat_field/`, for `calibrate-vignetting`.
+    #[arg(long, default_value_t = 0)]
+    pub flat_field: usize,
     /// No progress bar.
     #[arg(short, long)]
     pub quiet: bool,
 }
+
+/// Distance of the synthetic flat-field target, metres.
+pub const FLAT_FIELD_DISTANCE_M: f64 = 0.025;
 
 impl SynthArgs {
     /// The phantom spec these arguments describe.
@@ -108,6 +115,16 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     if args.contact_sheet {
         let p = args.out.join("contact_sheet.png");
         contact_sheet(&args.out, n, 30, &p).with_context(|| format!("writing {}", p.display()))?;
+    }
+    if args.flat_field > 0 {
+        let dir = args.out.join("flat_field");
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        for k in 0..args.flat_field {
+            let p = dir.join(format!("{k:06}.png"));
+            capsule_slam_framework::io::images::write_rgb(&p, &phantom.render_flat_field(k, FLAT_FIELD_DISTANCE_M))
+                .with_context(|| format!("writing {}", p.display()))?;
+        }
+        println!("{} flat-field frames in {}", args.flat_field, dir.display());
     }
     let (w, h) = phantom.spec.size.size();
     println!("preset {}  {} frames  {w}×{h}  path {:.1} mm  {:.1} ms per frame (incl. writing)", phantom.spec.preset, n, phantom.path_length_m() * 1e3, ms);

@@ -2,10 +2,12 @@
 
 mod cmd_bench;
 mod cmd_calibrate_light;
+mod cmd_calibrate_vignetting;
 mod cmd_config;
 mod cmd_depth_eval;
 mod cmd_eval;
 mod cmd_plugins;
+mod cmd_preprocess_eval;
 mod cmd_run;
 mod cmd_synth;
 mod plot;
@@ -32,8 +34,13 @@ enum Command {
     Bench(cmd_bench::BenchArgs),
     /// Fit light.toml to frames of a target of known albedo and geometry (depth).
     CalibrateLight(cmd_calibrate_light::CalibrateLightArgs),
+    /// Fit vignetting.toml (lens and LED fall-off) to flat-field frames.
+    CalibrateVignetting(cmd_calibrate_vignetting::CalibrateVignettingArgs),
     /// Single-frame error of the configured depth estimator against the input's depth.
     DepthEval(cmd_depth_eval::DepthEvalArgs),
+    /// Highlight mask precision / recall, inpainting error and vignetting bias of the
+    /// configured preprocessors against a phantom sequence's ground truth.
+    PreprocessEval(cmd_preprocess_eval::PreprocessEvalArgs),
     /// Trajectory and surface error of an estimate against ground truth.
     Eval(cmd_eval::EvalArgs),
     /// Render a synthetic stomach phantom sequence with its ground truth.
@@ -52,6 +59,8 @@ fn main() -> std::process::ExitCode {
         Command::Bench(a) => cmd_bench::run_bench(&a),
         Command::DepthEval(a) => cmd_depth_eval::run(&a),
         Command::CalibrateLight(a) => cmd_calibrate_light::run(&a),
+        Command::PreprocessEval(a) => cmd_preprocess_eval::run(&a),
+        Command::CalibrateVignetting(a) => cmd_calibrate_vignetting::run(&a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

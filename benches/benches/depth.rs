@@ -3,7 +3,7 @@
 
 use capsule_slam_benches::{phantom, rig};
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::frame::{Masks, Views};
+
 use capsule_slam_framework::phantom::SizePreset;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimator};
 use capsule_slam_plugins::depth::near_light_sfs::{NearLightSfs, NearLightSfsParams};
@@ -17,8 +17,7 @@ fn depth(c: &mut Criterion) {
         let p = phantom(size, 300);
         let rig = rig(&p);
         let r = p.render(100);
-        let frame =
-            CameraFrame { index: 100, timestamp_s: r.timestamp_s, views: Views::Mono(r.rgb.clone()), depth_m: None, gt_t_world_cam: None, masks: Masks::new() };
+        let frame = CameraFrame::mono(100, r.timestamp_s, r.rgb.clone());
         let estimators: [(&str, Box<dyn DepthEstimator>); 2] = [
             ("near-light-sfs", Box::new(NearLightSfs::with_light(NearLightSfsParams::default(), p.light.clone()))),
             ("tsai-shah", Box::new(TsaiShah::new(TsaiShahParams::default()))),

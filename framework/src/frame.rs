@@ -13,6 +13,52 @@ use crate::stage::ViewKind;
 pub const MASK_SPECULAR: &str = "specular";
 /// Well-known mask name: pixels outside the lens' round field of view.
 pub const MASK_OUT_OF_VIEW: &str = "out-of-view";
+/// Well-known mask name: pixels clipped by the sensor before a preprocessor rescaled them (their
+/// value no longer tells the radiance).
+pub const MASK_SATURATED: &str = "saturated";
+
+/// Which radial fall-off a preprocessor divided out of the images (frontend digest §D).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Falloff {
+    /// The lens vignetting and the LED profile, `V(u) · μ(u)`: what a near-light model keeps
+    /// apart from the cos θ / r² cue of the shape.
+    LensAndLight,
+    /// The whole flat field, `V(u) · μ(u) · cos³α(u)` (a flat target facing the capsule,
+    /// α the ray's angle to the optical axis): what a distant-light model (Tsai–Shah) expects.
+    FlatField,
+}
+
+impl Falloff {
+    /// The factor by which a flat-field-divided pixel must be multiplied to be lens-and-light
+    /// divided, at a ray with `cos α = cos_alpha` (a flat target at distance D sees the light at
+    /// distance D / cos α under incidence α: cos α · cos² α).
+    pub fn flat_to_lens_and_light(cos_alpha: f64) -> f64 {
+        cos_alpha * cos_alpha * cos_alpha
+    }
+}
+
+/// A fall-off divided out of every view's linear image: the corrected linear value is
+/// `linear_scale · L / F(u)` with L the input's linear value (each 8-bit channel decoded with
+/// `gamma`) and F the fall-off of kind `falloff`, 1 at the principal point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DividedFalloff {
+    /// What was divided out.
+    pub falloff: Falloff,
+    /// Global factor applied after the division (keeps the brightest corrected pixel below
+    /// clipping).
+    pub linear_scale: f64,
+    /// The encoding exponent used: pixel = linear^(1/gamma).
+    pub gamma: f64,
+}
+
+/// What preprocessors did to the photometry of a frame's images, so that a depth estimator with
+/// a photometric model sees the image it models.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Photometry {
+    /// The fall-off divided out, if any.
+    pub divided: Option<DividedFalloff>,
+}
 
 /// Named per-pixel masks. A set pixel marks a pixel that later stages must ignore
 /// (a specular highlight, a pixel outside the field of view, ...).
@@ -114,6 +160,15 @@ pub struct CameraFrame {
     pub gt_t_world_cam: Option<Iso3>,
     /// Masks of pixels to ignore.
     pub masks: Masks,
+    /// What the preprocessors did to the images' photometry.
+    pub photometry: Photometry,
+}
+
+impl CameraFrame {
+    /// A mono frame with no depth, pose, masks or photometric corrections.
+    pub fn mono(index: usize, timestamp_s: f64, image: Rgb8) -> Self {
+        Self { index, timestamp_s, views: Views::Mono(image), depth_m: None, gt_t_world_cam: None, masks: Masks::new(), photometry: Photometry::default() }
+    }
 }
 
 /// A memo of data derived from one frame (filtered depth, vertex and normal maps, ...), so that

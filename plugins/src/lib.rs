@@ -8,6 +8,7 @@ pub mod close;
 pub mod common;
 pub mod depth;
 pub mod fuse;
+pub mod preprocess;
 pub mod track;
 
 #[cfg(test)]

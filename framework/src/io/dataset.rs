@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use crate::camera::{CameraFile, Rig};
 use crate::config::InputConfig;
 use crate::error::LoadError;
-use crate::frame::{CameraFrame, MASK_OUT_OF_VIEW, Masks, Views};
+use crate::frame::{CameraFrame, MASK_OUT_OF_VIEW, Masks, Photometry, Views};
 use crate::geometry::{Iso3, StampedPose};
 use crate::image::Mask;
 use crate::io::{images, read_camera_file, tum};
@@ -169,6 +169,6 @@ impl Dataset {
         if let Some(m) = &self.out_of_view {
             masks.insert(MASK_OUT_OF_VIEW, m.clone());
         }
-        Ok(CameraFrame { index, timestamp_s: e.timestamp_s, views: Views::Mono(rgb), depth_m, gt_t_world_cam: e.gt, masks })
+        Ok(CameraFrame { index, timestamp_s: e.timestamp_s, views: Views::Mono(rgb), depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() })
     }
 }

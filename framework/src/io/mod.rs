@@ -61,6 +61,28 @@ pub fn write_light_file(path: &Path, light: &crate::light::LightModel) -> Result
     std::fs::write(path, format!("{header}{body}")).map_err(|e| LoadError::io(path, e))
 }
 
+/// Reads and validates a `vignetting.toml`; errors name the file, the line and the fix.
+pub fn read_vignetting_file(path: &Path) -> Result<crate::light::vignetting::VignettingFile, LoadError> {
+    let text = std::fs::read_to_string(path).map_err(|e| LoadError::io(path, e))?;
+    let file: crate::light::vignetting::VignettingFile = toml::from_str(&text).map_err(|e| {
+        let line = e.span().map_or(0, |s| text[..s.start.min(text.len())].matches('\n').count() + 1);
+        LoadError::parse(path, line, format!("{} (expected keys: gamma, lens_and_light; `capsule-slam calibrate-vignetting` writes this file)", e.message()))
+    })?;
+    if let Some((k, m)) = file.problems().into_iter().next() {
+        return Err(LoadError::parse(path, 0, format!("{k}: {m}")));
+    }
+    Ok(file)
+}
+
+/// Writes a `vignetting.toml` with the profiles' formula as a header comment.
+pub fn write_vignetting_file(path: &Path, file: &crate::light::vignetting::VignettingFile) -> Result<(), LoadError> {
+    let body = toml::to_string(file).map_err(|e| LoadError::parse(path, 0, e.to_string()))?;
+    let header = "# F = 1 + c1 r^2 + c2 r^4 + c3 r^6, r = pixel distance to (cx, cy) / half-diagonal; pixel = linear^(1/gamma)\n\
+                  # lens_and_light: lens vignetting x LED profile (divide for near-light shape from shading);\n\
+                  # the flat field (divide for Tsai-Shah) is lens_and_light x cos^3(ray angle), what a flat target facing the capsule shows\n";
+    std::fs::write(path, format!("{header}{body}")).map_err(|e| LoadError::io(path, e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::PinholeCamera;
 
 pub mod fit;
+pub mod vignetting;
 
 /// `light.toml`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

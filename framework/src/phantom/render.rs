@@ -184,6 +184,29 @@ impl Phantom {
         out
     }
 
+    /// Flat-field calibration frame `k`: a matte white target (albedo 0.8) facing the capsule at
+    /// `distance_m`, under the phantom's light and lens with its sensor noise, and no ambient
+    /// light (a calibration rig has no organ around it to reflect). What `capsule-slam
+    /// calibrate-vignetting` fits.
+    pub fn render_flat_field(&self, k: usize, distance_m: f64) -> Rgb8 {
+        let cam = &self.camera;
+        let light = crate::light::LightModel { ambient: 0.0, ..self.light.clone() };
+        let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(self.spec.seed ^ 0xF1A7_F1E1D ^ ((k as u64) << 32));
+        let noise = self.spec.noise;
+        Rgb8::from_fn(cam.width, cam.height, |x, y| {
+            let (u, v) = (x as f64, y as f64);
+            if !cam.in_fov(u, v) {
+                return [0; 3];
+            }
+            let lin = crate::light::vignetting::flat_field_linear(&light, cam, u, v, distance_m, 0.8);
+            std::array::from_fn(|_| {
+                let g: f64 = StandardNormal.sample(&mut rng);
+                let n = g * (noise * (READ_NOISE * READ_NOISE + SHOT_NOISE * lin)).sqrt();
+                to_u8(light.encode(lin + n))
+            })
+        })
+    }
+
     /// The lens vignetting V(u) of every pixel.
     pub fn vignetting_field(&self) -> GrayF32 {
         GrayF32::from_fn(self.camera.width, self.camera.height, |x, y| [self.light.vignetting_at(&self.camera, x as f64, y as f64) as f32])

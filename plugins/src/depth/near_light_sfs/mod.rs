@@ -27,8 +27,10 @@
 //! albedo-independent geometry (measured or stereo depth) gives the true albedo.
 
 use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::frame::{DividedFalloff, Falloff};
 use capsule_slam_framework::image::NTSC_WEIGHTS;
 use capsule_slam_framework::light::LightModel;
+use capsule_slam_framework::light::vignetting::cos_alpha;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimate, DepthEstimator, DepthMap, GrayF32, Mask, Plugin, Rgb8, StageError, register};
 use rayon::prelude::*;
@@ -139,6 +141,9 @@ struct Pixel {
     radiance: f64,
     /// The irradiance term the solve fits: `L / (V ρ) − ambient`.
     e: f64,
+    /// The ambient term in units of the radiance: `ambient`, or `ambient / μ(u)` when the LED
+    /// profile μ was divided out of the image (the ambient light never had it).
+    ambient: f64,
     /// Confidence of the signal level.
     conf: f32,
     /// Whether ρ came from the map.
@@ -217,10 +222,26 @@ impl NearLightSfs {
     /// Metric depth, confidence and observed albedo from the image; `map_albedo` (the map's
     /// prediction at the last pose, used with `albedo_source = "map"`) gives a pixel's albedo
     /// where it is positive.
-    pub fn depth(&mut self, image: &Rgb8, ignore: Option<&Mask>, cam: &PinholeCamera, map_albedo: Option<&GrayF32>) -> Result<SfsOutput, StageError> {
+    ///
+    /// `divided` says which fall-off a preprocessor already divided out of the image (the
+    /// frame's `photometry`): then the model's V and LED profile are replaced by the
+    /// preprocessor's scale (and, for a divided flat field, cos³α is multiplied back in, as the
+    /// cos θ / r² of the shape is this estimator's cue).
+    pub fn depth(
+        &mut self,
+        image: &Rgb8,
+        ignore: Option<&Mask>,
+        cam: &PinholeCamera,
+        map_albedo: Option<&GrayF32>,
+        divided: Option<DividedFalloff>,
+    ) -> Result<SfsOutput, StageError> {
         let p = self.params.clone();
         let decode = self.decode;
-        let light = self.light.clone();
+        let mut light = self.light.clone();
+        let spot_exponent = light.spot_exponent;
+        if divided.is_some() {
+            light.spot_exponent = 0.0;
+        }
         self.factorisations = 0;
         let mut previous = self.previous.take();
         let tables = self.tables(cam)?;
@@ -240,7 +261,17 @@ impl NearLightSfs {
             .into_par_iter()
             .map(|k| {
                 let (x, y) = (k % w, k / w);
-                let inv_v = tables.inv_vignetting[k]?;
+                let inv_v = match divided {
+                    None => tables.inv_vignetting[k]?,
+                    Some(d) => {
+                        tables.inv_vignetting[k]?;
+                        let back = match d.falloff {
+                            Falloff::LensAndLight => 1.0,
+                            Falloff::FlatField => Falloff::flat_to_lens_and_light(cos_alpha(cam, x as f64, y as f64)),
+                        };
+                        back / d.linear_scale
+                    }
+                };
                 if ignore.is_some_and(|m| m.at(x, y)) {
                     return None;
                 }
@@ -254,8 +285,12 @@ impl NearLightSfs {
                 }
                 let (rho, from_map) = rho_of(x, y);
                 let radiance = lum * inv_v;
-                let e = radiance / rho - light.ambient;
-                (e > 1e-9).then(|| Pixel { radiance, e, conf: ((lum - p.min_luminance) / 0.02).clamp(0.0, 1.0) as f32, from_map })
+                let ambient = match divided {
+                    Some(_) if spot_exponent != 0.0 => light.ambient / cos_alpha(cam, x as f64, y as f64).powf(spot_exponent),
+                    _ => light.ambient,
+                };
+                let e = radiance / rho - ambient;
+                (e > 1e-9).then(|| Pixel { radiance, e, ambient, conf: ((lum - p.min_luminance) / 0.02).clamp(0.0, 1.0) as f32, from_map })
             })
             .collect();
         let map_albedo_pixels = irradiance.iter().flatten().filter(|px| px.from_map).count();
@@ -340,7 +375,6 @@ impl NearLightSfs {
         let z_cell: Vec<f64> = zeta.iter().map(|z| z.exp()).collect();
         // 3. Per pixel: bilinear over the cell centres that exist.
         let (lo, hi) = (p.min_depth_m, p.max_depth_m);
-        let ambient = light.ambient;
         let out: Vec<[f32; 3]> = (0..w * h)
             .into_par_iter()
             .map(|k| {
@@ -355,7 +389,7 @@ impl NearLightSfs {
                 // surface at the last pose instead, the monocular pipeline's mean AbsRel came out
                 // worse, 0.048 / 0.072 against 0.045 / 0.065 on presets 1 / 4: the map lags a
                 // frame and carries the tracking drift.)
-                let rho = (px.radiance / (m.exp() + ambient)) as f32;
+                let rho = (px.radiance / (m.exp() + px.ambient)) as f32;
                 if d.is_finite() && d >= lo && d <= hi { [d, px.conf * dw.min(1.0) as f32, if rho.is_finite() { rho.max(0.0) } else { 0.0 }] } else { [0.0; 3] }
             })
             .collect();
@@ -369,7 +403,16 @@ impl NearLightSfs {
 impl DepthEstimator for NearLightSfs {
     fn estimate(&mut self, frame: &CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError> {
         let ignore = frame.masks.union();
-        let out = self.depth(frame.views.reference(), ignore.as_ref(), ctx.rig.camera(), ctx.prediction.map(|v| &v.albedo))?;
+        let divided = frame.photometry.divided;
+        if let Some(d) = divided
+            && (d.gamma - self.light.gamma).abs() > 1e-6
+        {
+            ctx.warn(format!(
+                "frame {}: the vignetting correction linearised with gamma {} but the light model has {}: the depth is biased; give both the same gamma",
+                frame.index, d.gamma, self.light.gamma
+            ));
+        }
+        let out = self.depth(frame.views.reference(), ignore.as_ref(), ctx.rig.camera(), ctx.prediction.map(|v| &v.albedo), divided)?;
         let valid = out.depth_m.data().iter().filter(|d| **d > 0.0).count();
         ctx.count("valid_pixels", valid as f64);
         ctx.count("factorisations", self.factorisations as f64);

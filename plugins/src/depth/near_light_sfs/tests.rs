@@ -1,7 +1,7 @@
 use capsule_slam_framework::camera::{PinholeCamera, Rig};
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::eval::depth::depth_error;
-use capsule_slam_framework::frame::{Masks, Views};
+
 use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimator, DepthMap, Rgb8};
 use nalgebra::Vector3;
@@ -44,7 +44,7 @@ fn render(scene: impl Fn(&Vector3<f64>) -> Option<(f64, Vector3<f64>)>, rho: f64
 fn estimate(img: &Rgb8, rho: f64, l: &LightModel, params: NearLightSfsParams) -> (DepthMap, Vec<String>) {
     let mut est = NearLightSfs::with_light(NearLightSfsParams { albedo: rho * 0.9999, ..params }, l.clone());
     let rig = Rig::Mono(cam());
-    let frame = CameraFrame { index: 0, timestamp_s: 0.0, views: Views::Mono(img.clone()), depth_m: None, gt_t_world_cam: None, masks: Masks::new() };
+    let frame = CameraFrame::mono(0, 0.0, img.clone());
     let mut r = StageReport::default();
     let out = est.estimate(&frame, &mut Context::new(0, &rig, None, &mut r)).unwrap();
     (out.depth_m, r.warnings)
@@ -118,8 +118,8 @@ fn a_warm_start_from_the_previous_frame_gives_the_same_depth_within_the_toleranc
     let params = NearLightSfsParams { albedo: 0.4 * 0.9999, warm_start: true, ..NearLightSfsParams::default() };
     let mut est = NearLightSfs::with_light(params, l.clone());
     let c = cam();
-    est.depth(&a, None, &c, None).unwrap();
-    let warm = est.depth(&b, None, &c, None).unwrap();
+    est.depth(&a, None, &c, None, None).unwrap();
+    let warm = est.depth(&b, None, &c, None, None).unwrap();
     let e = depth_error(&warm.depth_m, &truth, false).unwrap();
     assert!(e.abs_rel < 0.02, "{e:?}");
 }
@@ -129,7 +129,7 @@ fn the_observed_albedo_of_a_plane_is_the_rendered_one() {
     let l = light();
     let (img, _) = render(plane(Vector3::new(0.3, -0.2, -1.0), Vector3::new(0.0, 0.0, 0.03)), 0.5, &l);
     let mut est = NearLightSfs::with_light(NearLightSfsParams { albedo: 0.5, ..NearLightSfsParams::default() }, l.clone());
-    let out = est.depth(&img, None, &cam(), None).unwrap();
+    let out = est.depth(&img, None, &cam(), None, None).unwrap();
     let obs: Vec<f32> = out.albedo.data().iter().zip(out.depth_m.data()).filter(|(_, d)| **d > 0.0).map(|(a, _)| *a).collect();
     assert!(obs.len() > 10_000);
     let mean = obs.iter().sum::<f32>() / obs.len() as f32;
@@ -157,7 +157,7 @@ fn a_map_with_the_true_albedo_removes_the_texture_error() {
     let map = crate::fuse::surfel_cpu::predict(&surface.surfels, |_| true, &ph.camera, &pose, 0.001, 0.2);
     let run = |source: AlbedoSource, img: &Rgb8| {
         let mut est = NearLightSfs::with_light(NearLightSfsParams { albedo_source: source, ..NearLightSfsParams::default() }, ph.light.clone());
-        let out = est.depth(img, None, &ph.camera, Some(&map.albedo)).unwrap();
+        let out = est.depth(img, None, &ph.camera, Some(&map.albedo), None).unwrap();
         (depth_error(&out.depth_m, &frame.depth_m, false).unwrap().abs_rel, out.map_albedo_pixels)
     };
     let (constant, none) = run(AlbedoSource::Constant, &frame.rgb);

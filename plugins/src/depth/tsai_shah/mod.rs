@@ -18,6 +18,7 @@
 //!   makes bright pixels near, then maps the 2nd–98th percentiles of Z affinely onto
 //!   `[near_m, far_m]`. Confidence falls with the final reflectance residual |E − R|.
 
+use capsule_slam_framework::frame::Falloff;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimate, DepthEstimator, DepthMap, GrayF32, Mask, Plugin, StageError, register};
 use serde::{Deserialize, Serialize};
@@ -67,12 +68,14 @@ capsule_slam_framework::plugin_params! {
 /// The Tsai–Shah estimator.
 pub struct TsaiShah {
     params: TsaiShahParams,
+    /// Whether the warning about a lens-and-light-divided image was given.
+    warned_falloff: bool,
 }
 
 impl TsaiShah {
     /// An estimator with the given parameters (`near_m < far_m` is checked by `build`).
     pub fn new(params: TsaiShahParams) -> Self {
-        Self { params }
+        Self { params, warned_falloff: false }
     }
 }
 
@@ -182,6 +185,12 @@ impl DepthEstimator for TsaiShah {
         let img = frame.views.reference();
         let (w, h) = img.size();
         let cam = ctx.rig.camera();
+        if !self.warned_falloff && frame.photometry.divided.is_some_and(|d| d.falloff == Falloff::LensAndLight) {
+            self.warned_falloff = true;
+            ctx.warn(
+                "tsai-shah assumes a distant light but the vignetting stage divided only the lens and LED fall-off: set plugins.vignetting.divide = \"flat-field\" (frontend digest §D)",
+            );
+        }
         let ignore = frame.masks.union();
         let valid = Mask::from_fn(w, h, |x, y| [cam.in_fov(x as f64, y as f64) && !ignore.as_ref().is_some_and(|m| m.at(x, y))]);
         let mut e = capsule_slam_framework::image::gray_from_rgb(img);

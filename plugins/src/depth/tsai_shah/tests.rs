@@ -6,7 +6,7 @@ use capsule_slam_framework::{GrayF32, Mask};
 use super::{Form, TsaiShah, TsaiShahParams, dfdz, estimate_light, light_pq, reflectance, solve};
 use capsule_slam_framework::camera::{PinholeCamera, Rig};
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::frame::{Masks, Views};
+
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimator, Rgb8};
 
 /// The sphere's image under a light of (slant, tilt), its mask and its true depth (−height).
@@ -82,9 +82,9 @@ fn the_masked_estimator_overshoots_a_30_degree_slant_to_about_39() {
 }
 
 fn run(img: Rgb8) -> (capsule_slam_framework::DepthMap, Vec<String>) {
-    let mut t = TsaiShah { params: TsaiShahParams::default() };
+    let mut t = TsaiShah::new(TsaiShahParams::default());
     let rig = Rig::Mono(PinholeCamera::new(img.width(), img.height(), 64.0, 64.0, 63.5, 63.5));
-    let frame = CameraFrame { index: 0, timestamp_s: 0.0, views: Views::Mono(img), depth_m: None, gt_t_world_cam: None, masks: Masks::new() };
+    let frame = CameraFrame::mono(0, 0.0, img);
     let mut r = StageReport::default();
     let out = t.estimate(&frame, &mut Context::new(0, &rig, None, &mut r)).unwrap();
     (out.depth_m, r.warnings)

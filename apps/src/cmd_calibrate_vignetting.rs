@@ -1,0 +1,89 @@
+//! `capsule-slam calibrate-vignetting`: fit `vignetting.toml` to flat-field frames, images of a
+//! matte uniform target facing the capsule under its own light (frontend digest §D): the frames
+//! are linearised and averaged, the target's own cos³α is divided out and the lens-and-light
+//! profile V · μ is fitted as an even polynomial about the principal point
+//! (`capsule_slam_framework::light::vignetting::fit_flat_field`).
+
+use std::path::PathBuf;
+
+use anyhow::{Context as _, bail};
+use capsule_slam_framework::frame::Falloff;
+use capsule_slam_framework::io::{images, read_camera_file, write_vignetting_file};
+use capsule_slam_framework::light::vignetting::{RadialProfile, profile_falloff, radius2};
+
+/// Arguments of `calibrate-vignetting`.
+#[derive(clap::Args, Debug)]
+pub struct CalibrateVignettingArgs {
+    /// Folder of flat-field frames (PNG, JPEG or BMP; all of one size), e.g. the `flat_field/`
+    /// of `capsule-slam synth --flat-field 8`.
+    #[arg(long)]
+    images: PathBuf,
+    /// The capsule's camera.toml (principal point, focal length, field of view).
+    #[arg(long)]
+    camera: PathBuf,
+    /// Encoding exponent of the pixels (pixel = linear^(1/gamma)); `calibrate-light` fits it.
+    #[arg(long, default_value_t = 2.2)]
+    gamma: f64,
+    /// Polynomial terms (r², r⁴, r⁶): 1 to 3.
+    #[arg(long, default_value_t = 3)]
+    degree: usize,
+    /// Where to write the profile.
+    #[arg(long, default_value = "vignetting.toml")]
+    out: PathBuf,
+}
+
+pub fn run(args: &CalibrateVignettingArgs) -> anyhow::Result<()> {
+    if !(1..=3).contains(&args.degree) {
+        bail!("--degree {}: use 1, 2 or 3", args.degree);
+    }
+    if !(args.gamma.is_finite() && args.gamma > 0.0) {
+        bail!("--gamma {}: must be positive", args.gamma);
+    }
+    let cam = read_camera_file(&args.camera)?.camera();
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&args.images)
+        .with_context(|| format!("reading the flat-field folder {}", args.images.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].contains(&e.to_ascii_lowercase().as_str())))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        bail!("{} holds no PNG, JPEG or BMP image: give the folder of flat-field frames", args.images.display());
+    }
+    let (w, h) = (cam.width, cam.height);
+    let mut sum = vec![0.0f64; w * h];
+    let mut clipped = 0usize;
+    for f in &files {
+        let img = images::read_rgb(f, Some((w, h))).with_context(|| format!("flat-field frame {} (fix camera.toml or the frame)", f.display()))?;
+        for (k, px) in img.data().chunks_exact(3).enumerate() {
+            if px.iter().any(|c| *c >= 250) {
+                clipped += 1;
+            }
+            let lum: f64 = px.iter().zip(capsule_slam_framework::image::NTSC_WEIGHTS).map(|(c, wt)| wt * (f64::from(*c) / 255.0).powf(args.gamma)).sum();
+            sum[k] += lum;
+        }
+    }
+    let mean: Vec<f64> = sum.iter().map(|s| s / files.len() as f64).collect();
+    let Some(file) = capsule_slam_framework::light::vignetting::fit_flat_field(&mean, &cam, args.gamma, args.degree) else {
+        bail!("the flat field could not be fitted: the frames are black at the principal point or cover too few radii");
+    };
+    write_vignetting_file(&args.out, &file)?;
+    // Residual of the fit per ring of r².
+    let profile = RadialProfile { coeffs: file.lens_and_light.clone() };
+    let centre = (0..w * h).filter(|k| radius2(&cam, (k % w) as f64, (k / w) as f64) < 4e-4).map(|k| mean[k]).sum::<f64>()
+        / (0..w * h).filter(|k| radius2(&cam, (k % w) as f64, (k / w) as f64) < 4e-4).count().max(1) as f64;
+    let mut rings = [(0.0, 0.0); 8];
+    for (k, m) in mean.iter().enumerate() {
+        let (u, v) = ((k % w) as f64, (k / w) as f64);
+        if !cam.in_fov(u, v) || *m <= 0.0 {
+            continue;
+        }
+        let r = ((radius2(&cam, u, v) * 8.0) as usize).min(7);
+        rings[r].0 += m / centre / profile_falloff(&profile, &cam, u, v, Falloff::FlatField);
+        rings[r].1 += 1.0;
+    }
+    println!("{} flat-field frames, {}×{}; {} clipped pixel values", files.len(), w, h, clipped);
+    println!("lens_and_light = {:?} (F = 1 + c1 r² + c2 r⁴ + c3 r⁶; the flat field adds cos³α)", file.lens_and_light);
+    println!("flat field / fit per ring of r²: {}", rings.iter().filter(|r| r.1 > 0.0).map(|r| format!("{:.3}", r.0 / r.1)).collect::<Vec<_>>().join(" "));
+    println!("written to {}", args.out.display());
+    Ok(())
+}

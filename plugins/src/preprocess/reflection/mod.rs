@@ -1,0 +1,163 @@
+//! `reflection`: specular highlight removal, the paper's first step (Sec. 3.1): detection by
+//! the image's gradient map combined with adaptive-threshold peaks ([`detect`]), a dilation
+//! margin for the halo, inpainting of the masked pixels by Telea's fast marching ([`telea`]).
+//!
+//! Every view is cleaned; the reference view's mask is published in the frame as
+//! [`MASK_SPECULAR`] (`publish_mask`, on by default), so that the depth estimator, the tracker
+//! and the fuser ignore those pixels rather than trusting the inpainted guess. The pixels
+//! already masked (out of view) are neither searched nor read by the inpainting.
+//!
+//! Idempotent: an image without highlights is returned unchanged (the inpainted region has no
+//! peak with a sharp rim).
+
+pub mod detect;
+pub mod telea;
+
+use capsule_slam_framework::frame::MASK_SPECULAR;
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::{CameraFrame, Context, Mask, Plugin, Preprocessor, Rgb8, StageError, register};
+
+use detect::{DetectParams, detect, dilate};
+use telea::Order;
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of `reflection`.
+    pub struct ReflectionParams {
+        /// Side of the local-statistics window of the adaptive threshold (frontend digest §C:
+        /// block 31–51 px at 1350×1080; highlights here are 2–15 px across at 320×320).
+        pub window_px: u32 = 61; unit = "px"; range = 3.0..=255.0;
+        /// A peak lies this many local standard deviations above the local mean brightness
+        /// (digest §C: k ≈ 2–3).
+        pub peak_sigma: f64 = 1.0; unit = "σ"; range = 0.0..=20.0;
+        /// A peak is at least this bright, max(R, G, B) in 8-bit levels.
+        pub min_value: f64 = 60.0; unit = "8-bit"; range = 0.0..=255.0;
+        /// A peak is nearly white: saturation 1 − min/max of its channels at most this
+        /// (digest §C: S < ~0.3; mucosa is red, S ≈ 0.6).
+        pub max_saturation: f64 = 0.22; unit = "-"; range = 0.0..=1.0;
+        /// A group of peaks is a highlight only if the mean Sobel magnitude of the brightness on
+        /// its outer ring reaches this (sharp rims; digest §C T_g).
+        pub min_rim_gradient: f64 = 2.0; unit = "8-bit/px"; range = 0.0..=255.0;
+        /// The highlight extends over neighbours at least this many times brighter (linear
+        /// luminance) than the local diffuse background: 2 = where the highlight adds as much
+        /// light as the tissue reflects (the phantom's ground-truth mask).
+        pub grow_ratio: f64 = 2.0; unit = "-"; range = 1.0..=100.0;
+        /// The highlight also extends over neighbours whitened to at most this saturation.
+        pub grow_saturation: f64 = 0.25; unit = "-"; range = 0.0..=1.0;
+        /// Most pixels the highlight grows from its peaks.
+        pub max_grow_px: u32 = 20; unit = "px"; range = 0.0..=255.0;
+        /// Margin added around each highlight before inpainting (the halo), pixels.
+        pub dilate_px: u32 = 2; unit = "px"; range = 0.0..=32.0;
+        /// Radius of the inpainting neighbourhood (Telea's ε; digest §C: OpenCV radius 5).
+        pub inpaint_radius_px: f64 = 5.0; unit = "px"; range = 1.0..=64.0;
+        /// Extrapolation of the inpainting from each known pixel: `zero` (a weighted mean) or
+        /// `first` (Telea's eq. 3, exact on ramps, but it carries a highlight's bright halo
+        /// inward).
+        pub inpaint_order: Order = Order::Zero; unit = "-";
+        /// Encoding exponent of the pixels (for the linear luminance of the growth test).
+        pub gamma: f64 = 2.2; unit = "-"; range = 0.1..=10.0;
+        /// Publish the mask in the frame (`specular`), so that later stages ignore the
+        /// inpainted pixels; off = later stages use the inpainted values, as the paper does.
+        pub publish_mask: bool = true; unit = "-";
+    }
+}
+
+/// The reflection remover.
+pub struct Reflection {
+    params: ReflectionParams,
+    decode: [f64; 256],
+}
+
+impl Plugin for Reflection {
+    const NAME: &'static str = "reflection";
+    const SUMMARY: &'static str = "specular highlights: adaptive-threshold peaks kept by their rim gradient, grown against the diffuse background, dilated, inpainted by Telea's fast marching; publishes the `specular` mask";
+    type Params = ReflectionParams;
+
+    fn build(params: ReflectionParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        Ok(Self::new(params))
+    }
+}
+
+/// One view's result.
+#[derive(Debug, Clone)]
+pub struct Cleaned {
+    /// The detected highlights before the dilation.
+    pub detected: Mask,
+    /// The inpainted pixels (detected, dilated).
+    pub inpainted: Mask,
+    /// Peak groups found, and rejected by the gradient test.
+    pub groups: (usize, usize),
+}
+
+impl Reflection {
+    /// A remover with the given parameters.
+    pub fn new(params: ReflectionParams) -> Self {
+        let g = params.gamma;
+        Self { params, decode: std::array::from_fn(|v| (v as f64 / 255.0).powf(g)) }
+    }
+
+    fn detect_params(&self) -> DetectParams {
+        let p = &self.params;
+        DetectParams {
+            window_px: p.window_px as usize,
+            peak_sigma: p.peak_sigma,
+            min_value: p.min_value,
+            max_saturation: p.max_saturation,
+            min_rim_gradient: p.min_rim_gradient,
+            grow_ratio: p.grow_ratio,
+            grow_saturation: p.grow_saturation,
+            max_grow_px: p.max_grow_px as usize,
+        }
+    }
+
+    /// Detects and inpaints the highlights of one image in place, among the pixels set in
+    /// `valid`.
+    pub fn clean(&self, img: &mut Rgb8, valid: &Mask) -> Cleaned {
+        let d = detect(img, valid, &self.detect_params(), &self.decode);
+        let inpainted = dilate(&d.mask, self.params.dilate_px as usize, valid);
+        telea::inpaint(img, &inpainted, valid, self.params.inpaint_radius_px, self.params.inpaint_order);
+        Cleaned { detected: d.mask, inpainted, groups: (d.groups, d.rejected) }
+    }
+}
+
+impl Preprocessor for Reflection {
+    fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
+        let ignored = frame.masks.union();
+        let mut published = None;
+        let (mut groups, mut rejected, mut share) = (0, 0, 0.0);
+        for (i, img) in frame.views.iter_mut().enumerate() {
+            let (w, h) = img.size();
+            let valid = match &ignored {
+                Some(m) if i == 0 && m.size() == (w, h) => Mask::from_fn(w, h, |x, y| [!m.at(x, y)]),
+                _ => match ctx.rig.camera() {
+                    c if (c.width, c.height) == (w, h) => c.fov_mask(),
+                    _ => Mask::filled(w, h, true),
+                },
+            };
+            let out = self.clean(img, &valid);
+            groups += out.groups.0;
+            rejected += out.groups.1;
+            if i == 0 {
+                let n_valid = valid.data().iter().filter(|v| **v).count().max(1);
+                share = out.inpainted.data().iter().filter(|v| **v).count() as f64 / n_valid as f64;
+                published = Some(out.inpainted);
+            }
+        }
+        ctx.count("highlight_share", share);
+        ctx.count("peak_groups", groups as f64);
+        ctx.count("rejected_groups", rejected as f64);
+        if self.params.publish_mask
+            && let Some(mut m) = published
+        {
+            if let Some(old) = frame.masks.get(MASK_SPECULAR) {
+                m.data_mut().iter_mut().zip(old.data()).for_each(|(a, b)| *a |= *b);
+            }
+            frame.masks.insert(MASK_SPECULAR, m);
+        }
+        Ok(())
+    }
+}
+
+register!(Preprocessor, Reflection);
+
+#[cfg(test)]
+mod tests;

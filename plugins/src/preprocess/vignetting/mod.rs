@@ -1,0 +1,239 @@
+//! `vignetting`: divides a radial fall-off out of every view (the paper's step 2; frontend
+//! digest §D). What is divided must agree with the depth model:
+//!
+//! - `divide = "lens-and-light"` (default): the lens vignetting V and the LED profile μ only,
+//!   keeping the cos θ / r² cue that `near-light-sfs` reads depth from;
+//! - `divide = "flat-field"`: the whole flat field V · μ · cos³α, what a distant-light model
+//!   such as `tsai-shah` expects.
+//!
+//! The fall-off comes from `source`: `light` (the calibrated `light.toml`: V and μ exactly per
+//! pixel), `file` (a `vignetting.toml` of radial polynomials from `capsule-slam
+//! calibrate-vignetting` on flat-field frames) or `sequence` (no calibration: estimated from the
+//! first `learn_frames` frames themselves, [`sequence`]).
+//!
+//! In linear terms the corrected value is `s · L / F(u)`, `s = min(1, min F)` over the field of
+//! view so that nothing clips; as the encoding is a power law this is one gain per pixel on the
+//! 8-bit values, `(s / F)^(1/γ)`. The frame records what was divided, the scale and γ
+//! (`CameraFrame::photometry`), so that a depth estimator with a light model sees the image it
+//! models; pixels clipped by the sensor are masked as `saturated` (their corrected value would
+//! no longer be clipped, so nothing later could tell). Applying the stage twice does nothing the
+//! second time (the record says the fall-off is already divided).
+
+pub mod sequence;
+
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::frame::{DividedFalloff, Falloff, MASK_SATURATED};
+use capsule_slam_framework::light::LightModel;
+use capsule_slam_framework::light::vignetting::{VignettingFile, light_falloff, profile_falloff};
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::{CameraFrame, Context, Mask, Plugin, Preprocessor, Rgb8, StageError, register};
+use serde::{Deserialize, Serialize};
+
+use sequence::Learner;
+
+/// Where the fall-off comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Source {
+    /// `light.toml`: V and the LED profile, per pixel.
+    Light,
+    /// `vignetting.toml` (calibrate-vignetting).
+    File,
+    /// Estimated from the sequence.
+    Sequence,
+}
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of `vignetting`.
+    pub struct VignettingParams {
+        /// Where the fall-off comes from: `light`, `file` or `sequence`.
+        pub source: Source = Source::Light; unit = "-";
+        /// What to divide: `lens-and-light` (for near-light shape from shading) or `flat-field`
+        /// (for a distant-light model such as tsai-shah).
+        pub divide: Falloff = Falloff::LensAndLight; unit = "-";
+        /// The light model (source `light`), relative to the input folder.
+        pub light_file: String = "light.toml".to_string(); unit = "path";
+        /// The profiles (source `file`), relative to the input folder.
+        pub vignetting_file: String = "vignetting.toml".to_string(); unit = "path";
+        /// Source `sequence`: frames the estimate is learnt from (refitted on each, then frozen).
+        pub learn_frames: u32 = 60; unit = "frames"; range = 1.0..=100000.0;
+        /// Source `sequence`: terms of the radial polynomial (r², r⁴, r⁶).
+        pub degree: u32 = 3; unit = "-"; range = 1.0..=3.0;
+        /// Source `sequence`: the encoding exponent of the pixels (light and file give theirs).
+        pub gamma: f64 = 2.2; unit = "-"; range = 0.1..=10.0;
+        /// A pixel with a channel at or above this was clipped by the sensor: it is masked as
+        /// `saturated`.
+        pub saturation: u8 = 250; unit = "8-bit"; range = 1.0..=255.0;
+    }
+}
+
+/// Per-camera gains.
+struct Table {
+    camera: PinholeCamera,
+    /// Gain per pixel on the 8-bit values, `(s / F)^(1/γ)` (1 outside the field of view).
+    gain: Vec<f32>,
+    /// s.
+    linear_scale: f64,
+}
+
+/// The vignetting corrector.
+pub struct Vignetting {
+    params: VignettingParams,
+    source: FalloffSource,
+    /// The sequence estimate (source `sequence`).
+    learner: Learner,
+    table: Option<Table>,
+    warned_twice: bool,
+}
+
+impl Plugin for Vignetting {
+    const NAME: &'static str = "vignetting";
+    const SUMMARY: &'static str = "divides the lens and LED fall-off (or the whole flat field) out of every view, from light.toml, a calibrated vignetting.toml or the sequence itself; records what it divided for the depth model";
+    type Params = VignettingParams;
+
+    fn build(params: VignettingParams, env: &BuildEnv) -> Result<Self, StageError> {
+        let path = |name: &str| match &env.input_dir {
+            Some(dir) => dir.join(name),
+            None => std::path::PathBuf::from(name),
+        };
+        let source = match params.source {
+            Source::Light => FalloffSource::Light(capsule_slam_framework::io::read_light_file(&path(&params.light_file)).map_err(|e| {
+                StageError::invalid_input(format!(
+                    "{e}; `vignetting` with source = \"light\" needs the capsule's light model: put light.toml in the input folder, or set plugins.vignetting.source = \"file\" (a calibrated vignetting.toml) or \"sequence\""
+                ))
+            })?),
+            Source::File => FalloffSource::File(capsule_slam_framework::io::read_vignetting_file(&path(&params.vignetting_file)).map_err(|e| {
+                StageError::invalid_input(format!(
+                    "{e}; `vignetting` with source = \"file\" needs a vignetting.toml: `capsule-slam calibrate-vignetting` writes one from flat-field frames, or set plugins.vignetting.source = \"sequence\""
+                ))
+            })?),
+            Source::Sequence => FalloffSource::Sequence,
+        };
+        Ok(Self::new(params, source))
+    }
+}
+
+/// The model, as passed to [`Vignetting::new`].
+pub enum FalloffSource {
+    /// A light model.
+    Light(LightModel),
+    /// Calibrated profiles.
+    File(VignettingFile),
+    /// Learn from the sequence.
+    Sequence,
+}
+
+impl Vignetting {
+    /// A corrector from its parameters and fall-off source (`params.source` is ignored).
+    pub fn new(params: VignettingParams, source: FalloffSource) -> Self {
+        let learner = Learner::new(params.degree as usize);
+        Self { params, source, learner, table: None, warned_twice: false }
+    }
+
+    /// The encoding exponent the correction assumes.
+    pub fn gamma(&self) -> f64 {
+        match &self.source {
+            FalloffSource::Light(l) => l.gamma,
+            FalloffSource::File(f) => f.gamma,
+            FalloffSource::Sequence => self.params.gamma,
+        }
+    }
+
+    /// The fall-off F at pixel (u, v) (1 at the principal point), `None` while a sequence
+    /// estimate has no fit yet.
+    pub fn falloff(&self, cam: &PinholeCamera, u: f64, v: f64) -> Option<f64> {
+        let divide = self.params.divide;
+        Some(match &self.source {
+            FalloffSource::Light(l) => light_falloff(l, cam, u, v, divide),
+            FalloffSource::File(f) => f.falloff(cam, u, v, divide),
+            FalloffSource::Sequence => profile_falloff(self.learner.profile()?, cam, u, v, divide),
+        })
+    }
+
+    fn build_table(&self, cam: &PinholeCamera) -> Option<Table> {
+        let (w, h) = (cam.width, cam.height);
+        let mut f = vec![1.0f64; w * h];
+        let mut min_f = 1.0f64;
+        for (k, fk) in f.iter_mut().enumerate() {
+            let (u, v) = ((k % w) as f64, (k / w) as f64);
+            if cam.in_fov(u, v) {
+                *fk = self.falloff(cam, u, v)?.max(1e-3);
+                min_f = min_f.min(*fk);
+            }
+        }
+        let inv_gamma = 1.0 / self.gamma();
+        let gain = (0..w * h).map(|k| if cam.in_fov((k % w) as f64, (k / w) as f64) { (min_f / f[k]).powf(inv_gamma) as f32 } else { 1.0 }).collect();
+        Some(Table { camera: cam.clone(), gain, linear_scale: min_f })
+    }
+
+    /// Divides the fall-off out of one image (8-bit gains of the table).
+    fn apply(gain: &[f32], img: &mut Rgb8) {
+        for (px, g) in img.data_mut().chunks_exact_mut(3).zip(gain) {
+            for c in px {
+                *c = (f32::from(*c) * g).round().min(255.0) as u8;
+            }
+        }
+    }
+}
+
+impl Preprocessor for Vignetting {
+    fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
+        if frame.photometry.divided.is_some() {
+            if !self.warned_twice {
+                self.warned_twice = true;
+                ctx.warn("vignetting: the frame's fall-off is already divided (a second vignetting stage?): left unchanged");
+            }
+            return Ok(());
+        }
+        let cam = ctx.rig.camera().clone();
+        let img = frame.views.reference();
+        if img.size() != (cam.width, cam.height) {
+            return Err(StageError::invalid_input(format!(
+                "vignetting: frame {} is {}×{} but the camera is {}×{}: fix camera.toml or the images",
+                frame.index,
+                img.width(),
+                img.height(),
+                cam.width,
+                cam.height
+            )));
+        }
+        let ignored = frame.masks.union();
+        let sat = self.params.saturation;
+        let saturated = Mask::from_fn(cam.width, cam.height, |x, y| [img.pixel(x, y).iter().any(|c| *c >= sat)]);
+        if matches!(self.source, FalloffSource::Sequence) && self.learner.frames() < self.params.learn_frames as usize {
+            let (gamma, learner) = (self.params.gamma, &mut self.learner);
+            learner.add(img, &cam, |x, y| !saturated.at(x, y) && !ignored.as_ref().is_some_and(|m| m.at(x, y)), gamma);
+            self.table = None;
+            ctx.count("learnt_frames", learner.frames() as f64);
+        }
+        if self.table.as_ref().is_none_or(|t| t.camera != cam) {
+            self.table = self.build_table(&cam);
+        }
+        let Some(table) = &self.table else {
+            ctx.warn(format!("frame {}: vignetting: no fall-off estimate yet (too few usable pixels); the frame is left uncorrected", frame.index));
+            return Ok(());
+        };
+        for img in frame.views.iter_mut() {
+            if img.size() == (cam.width, cam.height) {
+                Self::apply(&table.gain, img);
+            }
+        }
+        let n_sat = saturated.data().iter().filter(|v| **v).count();
+        ctx.count("saturated_pixels", n_sat as f64);
+        ctx.count("linear_scale", table.linear_scale);
+        if n_sat > 0 {
+            let mut m = saturated;
+            if let Some(old) = frame.masks.get(MASK_SATURATED) {
+                m.data_mut().iter_mut().zip(old.data()).for_each(|(a, b)| *a |= *b);
+            }
+            frame.masks.insert(MASK_SATURATED, m);
+        }
+        frame.photometry.divided = Some(DividedFalloff { falloff: self.params.divide, linear_scale: table.linear_scale, gamma: self.gamma() });
+        Ok(())
+    }
+}
+
+register!(Preprocessor, Vignetting);
+
+#[cfg(test)]
+mod tests;

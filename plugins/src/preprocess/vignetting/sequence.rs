@@ -1,0 +1,94 @@
+//! The fall-off estimated from the sequence itself, when there is no calibration (frontend
+//! digest §D: "the temporal median of a long video", lens and light mixed): the mean linear
+//! luminance of the usable pixels over cos³α (the flat field's own geometry, known from the
+//! intrinsics) in each of `BINS` rings of r² over the frames seen, fitted by weighted least
+//! squares with `G(r²) = a0 + a1 r² + a2 r⁴ + a3 r⁶` and normalised, `F = G / a0`: the
+//! lens-and-light profile V · μ, as in `vignetting.toml`.
+//!
+//! As the scene moves while the fall-off stays, the average over many frames tends to the flat
+//! field times the scene's average radial brightness: exact when the capsule looks at the wall
+//! from every side equally, biased where the scene has a radial structure of its own (a tube seen
+//! along its axis is dark in the middle). The bias is measured in the README.
+
+use capsule_slam_framework::Rgb8;
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::frame::Falloff;
+use capsule_slam_framework::image::NTSC_WEIGHTS;
+use capsule_slam_framework::light::vignetting::{RadialProfile, cos_alpha, radius2};
+use nalgebra::{DMatrix, DVector};
+
+/// Rings of r² in [0, 1].
+const BINS: usize = 64;
+
+/// Accumulated radial statistics.
+pub struct Learner {
+    degree: usize,
+    sum: Vec<f64>,
+    count: Vec<f64>,
+    frames: usize,
+    profile: Option<RadialProfile>,
+}
+
+impl Learner {
+    /// An empty estimate with `degree` polynomial terms.
+    pub fn new(degree: usize) -> Self {
+        Self { degree, sum: vec![0.0; BINS], count: vec![0.0; BINS], frames: 0, profile: None }
+    }
+
+    /// Frames added.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// The current estimate of the lens-and-light profile, once one could be fitted.
+    pub fn profile(&self) -> Option<&RadialProfile> {
+        self.profile.as_ref()
+    }
+
+    /// Adds the pixels of `img` inside the field of view that `usable` allows, and refits.
+    pub fn add(&mut self, img: &Rgb8, cam: &PinholeCamera, usable: impl Fn(usize, usize) -> bool, gamma: f64) {
+        let decode: [f64; 256] = std::array::from_fn(|v| (v as f64 / 255.0).powf(gamma));
+        let (w, h) = img.size();
+        for y in 0..h {
+            for x in 0..w {
+                let (u, v) = (x as f64, y as f64);
+                if !cam.in_fov(u, v) || !usable(x, y) {
+                    continue;
+                }
+                let lum: f64 = img.pixel(x, y).iter().zip(NTSC_WEIGHTS).map(|(c, wt)| wt * decode[usize::from(*c)]).sum::<f64>()
+                    / Falloff::flat_to_lens_and_light(cos_alpha(cam, u, v));
+                if lum <= 0.0 {
+                    continue;
+                }
+                let bin = ((radius2(cam, u, v) * BINS as f64) as usize).min(BINS - 1);
+                self.sum[bin] += lum;
+                self.count[bin] += 1.0;
+            }
+        }
+        self.frames += 1;
+        self.profile = self.fit();
+    }
+
+    fn fit(&self) -> Option<RadialProfile> {
+        let n = self.degree + 1;
+        let mut a = DMatrix::<f64>::zeros(n, n);
+        let mut b = DVector::<f64>::zeros(n);
+        for i in 0..BINS {
+            if self.count[i] <= 0.0 {
+                continue;
+            }
+            let r2 = (i as f64 + 0.5) / BINS as f64;
+            let mean = self.sum[i] / self.count[i];
+            let row: Vec<f64> = (0..n).map(|k| r2.powi(k as i32)).collect();
+            for p in 0..n {
+                b[p] += self.count[i] * row[p] * mean;
+                for q in 0..n {
+                    a[(p, q)] += self.count[i] * row[p] * row[q];
+                }
+            }
+        }
+        let g = a.cholesky()?.solve(&b);
+        let a0 = g[0];
+        (a0 > 0.0 && g.iter().all(|v| v.is_finite())).then(|| RadialProfile { coeffs: g.iter().skip(1).map(|v| v / a0).collect() })
+    }
+}
