@@ -51,82 +51,112 @@ pub struct Detection {
     pub rejected: usize,
 }
 
-/// Box sums over a summed-area table.
+/// Summed-area tables of the valid pixels' count, brightness and squared brightness (exact
+/// integer sums).
 struct Integral {
     w: usize,
-    sum: Vec<f64>,
+    /// Per entry: (count, Σ V, Σ V²).
+    sum: Vec<(u32, u32, u64)>,
 }
 
 impl Integral {
-    fn new(w: usize, h: usize, f: impl Fn(usize) -> f64) -> Self {
-        let mut sum = vec![0.0; (w + 1) * (h + 1)];
+    fn new(w: usize, h: usize, mut sum: Vec<(u32, u32, u64)>, f: impl Fn(usize) -> Option<u8>) -> Self {
+        sum.clear();
+        sum.resize((w + 1) * (h + 1), (0, 0, 0));
         for y in 0..h {
-            let mut row = 0.0;
+            let mut row = (0u32, 0u32, 0u64);
             for x in 0..w {
-                row += f(y * w + x);
-                sum[(y + 1) * (w + 1) + x + 1] = sum[y * (w + 1) + x + 1] + row;
+                if let Some(v) = f(y * w + x) {
+                    row.0 += 1;
+                    row.1 += u32::from(v);
+                    row.2 += u64::from(v) * u64::from(v);
+                }
+                let up = sum[y * (w + 1) + x + 1];
+                sum[(y + 1) * (w + 1) + x + 1] = (up.0 + row.0, up.1 + row.1, up.2 + row.2);
             }
         }
         Self { w, sum }
     }
 
-    /// Sum over columns x0..x1 and rows y0..y1 (exclusive ends).
-    fn rect(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> f64 {
+    /// (count, mean, variance) over columns x0..x1 and rows y0..y1 (exclusive ends).
+    fn stats(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> (f64, f64, f64) {
         let s = |x: usize, y: usize| self.sum[y * (self.w + 1) + x];
-        s(x1, y1) - s(x0, y1) - s(x1, y0) + s(x0, y0)
+        let (a, b, c, d) = (s(x1, y1), s(x0, y1), s(x1, y0), s(x0, y0));
+        let n = f64::from(a.0 + d.0 - b.0 - c.0);
+        if n <= 0.0 {
+            return (0.0, 0.0, 0.0);
+        }
+        let s1 = f64::from(a.1 + d.1 - b.1 - c.1);
+        let s2 = (a.2 + d.2 - b.2 - c.2) as f64;
+        let mean = s1 / n;
+        (n, mean, (s2 / n - mean * mean).max(0.0))
     }
+}
+
+/// Buffers of one image size, reused from frame to frame (the tables are megabytes: fresh
+/// allocations would cost page faults every frame).
+#[derive(Default)]
+pub struct Scratch {
+    value: Vec<u8>,
+    saturation: Vec<f32>,
+    integral: Vec<(u32, u32, u64)>,
+    peak: Vec<bool>,
+    label: Vec<u32>,
+    steps: Vec<u16>,
 }
 
 /// Detects the highlights of `img` among the pixels set in `valid`; `decode` maps 8-bit values
 /// to linear.
-pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256]) -> Detection {
+pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], scratch: &mut Scratch) -> Detection {
     let (w, h) = img.size();
     let n = w * h;
     let mut out = Detection { mask: Mask::new(w, h), groups: 0, rejected: 0 };
     if n == 0 || valid.size() != (w, h) {
         return out;
     }
-    let px = |k: usize| -> [u8; 3] { [img.data()[3 * k], img.data()[3 * k + 1], img.data()[3 * k + 2]] };
-    let value: Vec<f64> = (0..n).map(|k| f64::from(*px(k).iter().max().unwrap_or(&0))).collect();
-    let saturation: Vec<f64> = (0..n)
-        .map(|k| {
-            let lo = f64::from(*px(k).iter().min().unwrap_or(&0));
-            if value[k] > 0.0 { 1.0 - lo / value[k] } else { 1.0 }
-        })
-        .collect();
-    let lum: Vec<f64> = (0..n).map(|k| px(k).iter().zip(NTSC_WEIGHTS).map(|(c, wt)| wt * decode[usize::from(*c)]).sum()).collect();
+    // Brightness V = max channel and saturation 1 − min / max per pixel.
+    let Scratch { value, saturation, integral, peak, label, steps } = scratch;
+    value.resize(n, 0);
+    saturation.resize(n, 0.0);
+    for ((v, s), c) in value.iter_mut().zip(saturation.iter_mut()).zip(img.data().chunks_exact(3)) {
+        let (hi, lo) = (c[0].max(c[1]).max(c[2]), c[0].min(c[1]).min(c[2]));
+        *v = hi;
+        *s = if hi > 0 { 1.0 - f32::from(lo) / f32::from(hi) } else { 1.0 };
+    }
+    let (value, saturation) = (&*value, &*saturation);
     let ok = |k: usize| valid.data()[k];
-    let count = Integral::new(w, h, |k| if ok(k) { 1.0 } else { 0.0 });
-    let s1 = Integral::new(w, h, |k| if ok(k) { value[k] } else { 0.0 });
-    let s2 = Integral::new(w, h, |k| if ok(k) { value[k] * value[k] } else { 0.0 });
+    let stats = Integral::new(w, h, std::mem::take(integral), |k| ok(k).then_some(value[k]));
     let half = p.window_px / 2;
     let window = |k: usize| {
         let (x, y) = (k % w, k / w);
         (x.saturating_sub(half), y.saturating_sub(half), (x + half + 1).min(w), (y + half + 1).min(h))
     };
-    // 1. Peaks by the adaptive threshold.
-    let peak: Vec<bool> = (0..n)
-        .map(|k| {
-            if !ok(k) || value[k] < p.min_value {
-                return false;
-            }
-            if saturation[k] > p.max_saturation {
-                return false;
-            }
-            let (x0, y0, x1, y1) = window(k);
-            let m = count.rect(x0, y0, x1, y1).max(1.0);
-            let mean = s1.rect(x0, y0, x1, y1) / m;
-            let var = (s2.rect(x0, y0, x1, y1) / m - mean * mean).max(0.0);
-            value[k] > mean + p.peak_sigma * var.sqrt()
-        })
-        .collect();
+    // 1. Peaks by the adaptive threshold (the window statistics only for the white, bright
+    // pixels that could be peaks).
+    peak.resize(n, false);
+    let is_peak = |k: usize| {
+        if !ok(k) || f64::from(value[k]) < p.min_value || f64::from(saturation[k]) > p.max_saturation {
+            return false;
+        }
+        let (x0, y0, x1, y1) = window(k);
+        let (_, mean, var) = stats.stats(x0, y0, x1, y1);
+        f64::from(value[k]) > mean + p.peak_sigma * var.sqrt()
+    };
+    for (k, o) in peak.iter_mut().enumerate() {
+        *o = is_peak(k);
+    }
+    *integral = stats.sum;
+    let peak = &*peak;
+    if !peak.iter().any(|v| *v) {
+        return out;
+    }
     // 2. Groups of peaks (8-connected, in index order) kept by their rim gradient.
     let sobel = |k: usize| -> f64 {
         let (x, y) = (k % w, k / w);
         if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h {
             return 0.0;
         }
-        let v = |dx: isize, dy: isize| value[(y as isize + dy) as usize * w + (x as isize + dx) as usize];
+        let v = |dx: isize, dy: isize| f64::from(value[(y as isize + dy) as usize * w + (x as isize + dx) as usize]);
         let gx = (v(1, -1) + 2.0 * v(1, 0) + v(1, 1)) - (v(-1, -1) + 2.0 * v(-1, 0) + v(-1, 1));
         let gy = (v(-1, 1) + 2.0 * v(0, 1) + v(1, 1)) - (v(-1, -1) + 2.0 * v(0, -1) + v(1, -1));
         (gx * gx + gy * gy).sqrt() / 8.0
@@ -138,7 +168,15 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256]) -
             ((dx, dy) != (0, 0) && nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h).then(|| ny as usize * w + nx as usize)
         })
     };
-    let mut label = vec![0u32; n];
+    // `label` is all 0 and `steps` all u16::MAX between calls (each resets what it set), so
+    // only a new image size fills them.
+    if label.len() != n {
+        label.clear();
+        label.resize(n, 0);
+        steps.clear();
+        steps.resize(n, u16::MAX);
+    }
+    let mut labelled = Vec::new();
     let mut seeds = Vec::new();
     let mut stack = Vec::new();
     for start in 0..n {
@@ -147,52 +185,80 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256]) -
         }
         out.groups += 1;
         let id = out.groups as u32;
-        let mut members = vec![start];
+        let first = labelled.len();
+        labelled.push(start);
         label[start] = id;
         stack.push(start);
         while let Some(k) = stack.pop() {
             for q in neighbours8(k) {
                 if peak[q] && label[q] == 0 {
                     label[q] = id;
-                    members.push(q);
+                    labelled.push(q);
                     stack.push(q);
                 }
             }
         }
+        // The one-pixel outer ring, each ring pixel counted once (marked u32::MAX meanwhile).
         let mut rim = (0.0, 0usize);
-        for &k in &members {
+        let mut ring = Vec::new();
+        let members = &labelled[first..];
+        for &k in members {
             for q in neighbours8(k) {
                 if label[q] == 0 && ok(q) {
                     label[q] = u32::MAX;
+                    ring.push(q);
                     rim.0 += sobel(q);
                     rim.1 += 1;
                 }
             }
         }
-        // Un-mark the ring (u32::MAX was only to count each ring pixel once).
-        for &k in &members {
-            for q in neighbours8(k) {
-                if label[q] == u32::MAX {
-                    label[q] = 0;
-                }
-            }
+        for q in ring {
+            label[q] = 0;
         }
         if rim.1 > 0 && rim.0 / rim.1 as f64 >= p.min_rim_gradient {
-            seeds.extend(members);
+            seeds.extend_from_slice(members);
         } else {
             out.rejected += 1;
         }
     }
     // 3. Growth against the diffuse background: the window's mean linear luminance without the
-    // peaks.
-    let bg_count = Integral::new(w, h, |k| if ok(k) && !peak[k] { 1.0 } else { 0.0 });
-    let bg_sum = Integral::new(w, h, |k| if ok(k) && !peak[k] { lum[k] } else { 0.0 });
+    // peaks (computed where the growth asks).
+    let lum_lut: [[f64; 256]; 3] = std::array::from_fn(|c| std::array::from_fn(|v| NTSC_WEIGHTS[c] * decode[v]));
+    let lum = |k: usize| -> f64 {
+        let c = &img.data()[3 * k..3 * k + 3];
+        lum_lut[0][usize::from(c[0])] + lum_lut[1][usize::from(c[1])] + lum_lut[2][usize::from(c[2])]
+    };
+    // The background table covers the seeds' bounding box grown by the reach of the growth and
+    // of the window (a highlight is local; the rest of the image is never asked).
+    let reach = p.max_grow_px + half + 1;
+    let (bx0, by0, bx1, by1) = seeds.iter().fold((w, h, 0, 0), |(x0, y0, x1, y1), &k| (x0.min(k % w), y0.min(k / w), x1.max(k % w + 1), y1.max(k / w + 1)));
+    let (bx0, by0, bx1, by1) = (bx0.saturating_sub(reach), by0.saturating_sub(reach), (bx1 + reach).min(w), (by1 + reach).min(h));
+    let bw = bx1 - bx0;
+    let mut bg = vec![(0.0f64, 0.0f64); (bw + 1) * (by1 - by0 + 1)];
+    for y in by0..by1 {
+        let mut row = (0.0, 0.0);
+        for x in bx0..bx1 {
+            let k = y * w + x;
+            if ok(k) && !peak[k] {
+                row.0 += 1.0;
+                row.1 += lum(k);
+            }
+            let (ty, tx) = (y - by0, x - bx0);
+            let up = bg[ty * (bw + 1) + tx + 1];
+            bg[(ty + 1) * (bw + 1) + tx + 1] = (up.0 + row.0, up.1 + row.1);
+        }
+    }
     let background = |k: usize| {
         let (x0, y0, x1, y1) = window(k);
-        let m = bg_count.rect(x0, y0, x1, y1);
-        if m > 0.0 { bg_sum.rect(x0, y0, x1, y1) / m } else { f64::INFINITY }
+        let (x0, y0, x1, y1) = (x0.clamp(bx0, bx1) - bx0, y0.clamp(by0, by1) - by0, x1.clamp(bx0, bx1) - bx0, y1.clamp(by0, by1) - by0);
+        let s = |x: usize, y: usize| bg[y * (bw + 1) + x];
+        let (a, b, c, d) = (s(x1, y1), s(x0, y1), s(x1, y0), s(x0, y0));
+        let m = a.0 + d.0 - b.0 - c.0;
+        if m > 0.0 { (a.1 + d.1 - b.1 - c.1) / m } else { f64::INFINITY }
     };
-    let mut steps = vec![usize::MAX; n];
+    for k in labelled {
+        label[k] = 0;
+    }
     let mut queue = std::collections::VecDeque::new();
     for k in seeds {
         out.mask.data_mut()[k] = true;
@@ -200,15 +266,20 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256]) -
         queue.push_back(k);
     }
     while let Some(k) = queue.pop_front() {
-        if steps[k] >= p.max_grow_px {
+        if usize::from(steps[k]) >= p.max_grow_px {
             continue;
         }
         for q in neighbours8(k) {
-            if ok(q) && steps[q] == usize::MAX && (saturation[q] <= p.grow_saturation || lum[q] >= p.grow_ratio * background(q)) {
+            if ok(q) && steps[q] == u16::MAX && (f64::from(saturation[q]) <= p.grow_saturation || lum(q) >= p.grow_ratio * background(q)) {
                 steps[q] = steps[k] + 1;
                 out.mask.data_mut()[q] = true;
                 queue.push_back(q);
             }
+        }
+    }
+    for (k, m) in out.mask.data().iter().enumerate() {
+        if *m {
+            steps[k] = u16::MAX;
         }
     }
     out

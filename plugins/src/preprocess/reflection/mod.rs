@@ -65,6 +65,7 @@ capsule_slam_framework::plugin_params! {
 pub struct Reflection {
     params: ReflectionParams,
     decode: [f64; 256],
+    scratch: detect::Scratch,
 }
 
 impl Plugin for Reflection {
@@ -92,7 +93,7 @@ impl Reflection {
     /// A remover with the given parameters.
     pub fn new(params: ReflectionParams) -> Self {
         let g = params.gamma;
-        Self { params, decode: std::array::from_fn(|v| (v as f64 / 255.0).powf(g)) }
+        Self { params, decode: std::array::from_fn(|v| (v as f64 / 255.0).powf(g)), scratch: detect::Scratch::default() }
     }
 
     fn detect_params(&self) -> DetectParams {
@@ -111,8 +112,9 @@ impl Reflection {
 
     /// Detects and inpaints the highlights of one image in place, among the pixels set in
     /// `valid`.
-    pub fn clean(&self, img: &mut Rgb8, valid: &Mask) -> Cleaned {
-        let d = detect(img, valid, &self.detect_params(), &self.decode);
+    pub fn clean(&mut self, img: &mut Rgb8, valid: &Mask) -> Cleaned {
+        let params = self.detect_params();
+        let d = detect(img, valid, &params, &self.decode, &mut self.scratch);
         let inpainted = dilate(&d.mask, self.params.dilate_px as usize, valid);
         telea::inpaint(img, &inpainted, valid, self.params.inpaint_radius_px, self.params.inpaint_order);
         Cleaned { detected: d.mask, inpainted, groups: (d.groups, d.rejected) }
@@ -127,7 +129,11 @@ impl Preprocessor for Reflection {
         for (i, img) in frame.views.iter_mut().enumerate() {
             let (w, h) = img.size();
             let valid = match &ignored {
-                Some(m) if i == 0 && m.size() == (w, h) => Mask::from_fn(w, h, |x, y| [!m.at(x, y)]),
+                Some(m) if i == 0 && m.size() == (w, h) => {
+                    let mut v = m.clone();
+                    v.data_mut().iter_mut().for_each(|b| *b = !*b);
+                    v
+                }
                 _ => match ctx.rig.camera() {
                     c if (c.width, c.height) == (w, h) => c.fov_mask(),
                     _ => Mask::filled(w, h, true),

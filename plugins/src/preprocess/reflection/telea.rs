@@ -64,12 +64,41 @@ pub enum Order {
 }
 
 /// Fills the pixels of `img` set in `mask` from the pixels set in `source` and not in `mask`.
-/// Returns the number of pixels filled.
+/// Returns the number of pixels filled. Works on the mask's bounding box grown by the radius.
 pub fn inpaint(img: &mut Rgb8, mask: &Mask, source: &Mask, radius_px: f64, order: Order) -> usize {
     let (w, h) = img.size();
     if mask.size() != (w, h) || source.size() != (w, h) || w == 0 || h == 0 {
         return 0;
     }
+    let Some((x0, y0, x1, y1)) = mask.data().iter().enumerate().filter(|(_, m)| **m).fold(None, |b: Option<(usize, usize, usize, usize)>, (k, _)| {
+        let (x, y) = (k % w, k / w);
+        Some(b.map_or((x, y, x + 1, y + 1), |(a, b, c, d)| (a.min(x), b.min(y), c.max(x + 1), d.max(y + 1))))
+    }) else {
+        return 0;
+    };
+    let pad = radius_px.max(1.0).ceil() as usize + 2;
+    let (x0, y0, x1, y1) = (x0.saturating_sub(pad), y0.saturating_sub(pad), (x1 + pad).min(w), (y1 + pad).min(h));
+    if (x0, y0, x1, y1) == (0, 0, w, h) {
+        return inpaint_full(img, mask, source, radius_px, order);
+    }
+    let (cw, ch) = (x1 - x0, y1 - y0);
+    let mut crop = Rgb8::from_fn(cw, ch, |x, y| img.pixel(x0 + x, y0 + y));
+    let crop_mask = Mask::from_fn(cw, ch, |x, y| [mask.at(x0 + x, y0 + y)]);
+    let crop_source = Mask::from_fn(cw, ch, |x, y| [source.at(x0 + x, y0 + y)]);
+    let filled = inpaint_full(&mut crop, &crop_mask, &crop_source, radius_px, order);
+    for y in 0..ch {
+        for x in 0..cw {
+            if crop_mask.at(x, y) {
+                img.set_pixel(x0 + x, y0 + y, crop.pixel(x, y));
+            }
+        }
+    }
+    filled
+}
+
+/// [`inpaint`] on the whole image.
+fn inpaint_full(img: &mut Rgb8, mask: &Mask, source: &Mask, radius_px: f64, order: Order) -> usize {
+    let (w, h) = img.size();
     let n = w * h;
     let mut flag: Vec<Flag> = (0..n)
         .map(|k| {
@@ -114,7 +143,15 @@ pub fn inpaint(img: &mut Rgb8, mask: &Mask, source: &Mask, radius_px: f64, order
         }
     }
     let r = radius_px.max(1.0);
-    let ri = r.ceil() as i64;
+    let ri = r.ceil() as isize;
+    // The disc of sources: offset (dx, dy) from the pixel to the source, 1 / |d|, 1 / |d|².
+    let disc: Vec<(isize, isize, f64, f64)> = (-ri..=ri)
+        .flat_map(|dy| (-ri..=ri).map(move |dx| (dx, dy)))
+        .filter_map(|(dx, dy)| {
+            let d2 = (dx * dx + dy * dy) as f64;
+            (d2 > 0.0 && d2 <= r * r).then(|| (dx, dy, 1.0 / d2.sqrt(), 1.0 / d2))
+        })
+        .collect();
     let mut filled = 0;
     while let Some(Entry(_, k)) = heap.pop() {
         if flag[k] == Flag::Known {
@@ -127,42 +164,40 @@ pub fn inpaint(img: &mut Rgb8, mask: &Mask, source: &Mask, radius_px: f64, order
             }
             let tq = solve_t(q, w, h, &t, &flag);
             t[q] = tq;
-            let (qx, qy) = ((q % w) as i64, (q / w) as i64);
+            let (qx, qy) = ((q % w) as isize, (q / w) as isize);
             let grad_t = gradient(q, w, h, |i| (flag[i] != Flag::Inside && flag[i] != Flag::Excluded).then_some(t[i]), |_| true);
             let norm = (grad_t[0] * grad_t[0] + grad_t[1] * grad_t[1]).sqrt();
             let nrm = if norm > 0.0 { [grad_t[0] / norm, grad_t[1] / norm] } else { [0.0, 0.0] };
             let mut sum = [0.0f64; 3];
             let mut gsum = [[0.0f64; 2]; 3];
             let mut wsum = 0.0f64;
-            for dy in -ri..=ri {
-                for dx in -ri..=ri {
-                    let (x, y) = (qx + dx, qy + dy);
-                    if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 || (dx == 0 && dy == 0) {
-                        continue;
-                    }
-                    let d2 = (dx * dx + dy * dy) as f64;
-                    if d2 > r * r {
-                        continue;
-                    }
-                    let s = y as usize * w + x as usize;
-                    if !matches!(flag[s], Flag::Known | Flag::Band) {
-                        continue;
-                    }
-                    // Vector from the source s to the pixel q.
-                    let (vx, vy) = (-dx as f64, -dy as f64);
-                    let len = d2.sqrt();
-                    let dir = ((vx * nrm[0] + vy * nrm[1]) / len).abs().max(1e-6);
-                    let dst = 1.0 / d2;
-                    let lev = 1.0 / (1.0 + (f64::from(tq) - f64::from(t[s])).abs());
-                    let wt = dir * dst * lev;
+            for &(dx, dy, inv_len, inv_d2) in &disc {
+                let (x, y) = (qx + dx, qy + dy);
+                if x < 0 || y < 0 || x >= w as isize || y >= h as isize {
+                    continue;
+                }
+                let s = y as usize * w + x as usize;
+                if !matches!(flag[s], Flag::Known | Flag::Band) {
+                    continue;
+                }
+                // Vector from the source s to the pixel q.
+                let (vx, vy) = (-dx as f64, -dy as f64);
+                let dir = ((vx * nrm[0] + vy * nrm[1]) * inv_len).abs().max(1e-6);
+                let lev = 1.0 / (1.0 + (f64::from(tq) - f64::from(t[s])).abs());
+                let wt = dir * inv_d2 * lev;
+                if order == Order::First {
                     for c in 0..3 {
-                        let g = if order == Order::First { grad[s][c] } else { [0.0; 2] };
+                        let g = grad[s][c];
                         sum[c] += wt * (f64::from(val[s][c]) + g[0] * vx + g[1] * vy);
                         gsum[c][0] += wt * g[0];
                         gsum[c][1] += wt * g[1];
                     }
-                    wsum += wt;
+                } else {
+                    for (acc, v) in sum.iter_mut().zip(val[s]) {
+                        *acc += wt * f64::from(v);
+                    }
                 }
+                wsum += wt;
             }
             if wsum > 0.0 {
                 val[q] = sum.map(|v| (v / wsum).clamp(0.0, 255.0) as f32);

@@ -61,7 +61,7 @@ fn a_rendered_highlight_is_found_to_its_extent() {
 fn inpainting_restores_the_diffuse_image_and_touches_nothing_else() {
     let (mut img, diffuse, _) = scene(120, 100, 57.0, 44.0, 4.0, 1.5);
     let before = img.clone();
-    let r = Reflection::new(ReflectionParams::default());
+    let mut r = Reflection::new(ReflectionParams::default());
     let out = r.clean(&mut img, &Mask::filled(120, 100, true));
     let (mut sse_after, mut sse_before, mut n) = (0.0, 0.0, 0.0);
     for k in 0..120 * 100 {
@@ -84,7 +84,7 @@ fn inpainting_restores_the_diffuse_image_and_touches_nothing_else() {
 #[test]
 fn cleaning_twice_changes_nothing_more() {
     let (mut img, _, _) = scene(120, 100, 57.0, 44.0, 4.0, 1.5);
-    let r = Reflection::new(ReflectionParams::default());
+    let mut r = Reflection::new(ReflectionParams::default());
     r.clean(&mut img, &Mask::filled(120, 100, true));
     let once = img.clone();
     let again = r.clean(&mut img, &Mask::filled(120, 100, true));
@@ -146,7 +146,7 @@ fn the_stage_publishes_the_mask_and_cleans_stereo_views() {
 
 #[test]
 fn odd_sizes_black_and_saturated_frames_do_not_panic() {
-    let r = Reflection::new(ReflectionParams::default());
+    let mut r = Reflection::new(ReflectionParams::default());
     for (w, h) in [(1, 1), (2, 7), (37, 23), (0, 0)] {
         for v in [0u8, 255, 128] {
             let mut img = Rgb8::filled(w, h, v);
