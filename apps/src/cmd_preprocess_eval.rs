@@ -14,7 +14,8 @@ use capsule_slam_framework::frame::MASK_SPECULAR;
 use capsule_slam_framework::io::{Dataset, images};
 use capsule_slam_framework::light::vignetting::{light_falloff, radius2};
 use capsule_slam_framework::registry::{BuildEnv, Stage};
-use capsule_slam_framework::{Mask, Rgb8};
+use capsule_slam_framework::{Iso3, Mask, ModelView, Rgb8};
+use capsule_slam_plugins::common::maps::{normal_map, vertex_map};
 
 /// Arguments of `preprocess-eval`.
 #[derive(clap::Args, Debug)]
@@ -32,6 +33,11 @@ pub struct PreprocessEvalArgs {
     /// Evaluate every N-th frame.
     #[arg(long, default_value_t = 10)]
     every: usize,
+    /// Give the preprocessors the frame's ground-truth geometry as the map's prediction (what a
+    /// pipeline with measured depth would predict; for `plugins.vignetting.sequence_model =
+    /// "shading"`).
+    #[arg(long)]
+    oracle_prediction: bool,
     /// Write, per evaluated frame, the input, the output and the masks (white: found and true;
     /// red: found only; green: true only) as PNG into this folder.
     #[arg(long)]
@@ -89,10 +95,20 @@ pub fn run(args: &PreprocessEvalArgs) -> anyhow::Result<()> {
         let diffuse = images::read_rgb(&dif_path, size).with_context(|| format!("ground-truth diffuse image {}", dif_path.display()))?;
         let input = frame.views.reference().clone();
         let mut report = StageReport::default();
+        let prediction = match (&frame.depth_m, args.oracle_prediction) {
+            (Some(d), true) => {
+                let mut view = ModelView::empty(cam.width, cam.height, frame.gt_t_world_cam.unwrap_or_else(Iso3::identity));
+                view.normals_cam = normal_map(&vertex_map(d, &cam), 4, 0.004);
+                view.depth_m = d.clone();
+                Some(view)
+            }
+            (None, true) => bail!("--oracle-prediction needs the input's depth"),
+            _ => None,
+        };
         for (k, (name, stage)) in stages.iter_mut().enumerate() {
             let before = frame.views.reference().clone();
             let start = Instant::now();
-            stage.process(&mut frame, &mut Context::new(i, &rig, None, &mut report)).with_context(|| format!("{name} on frame {i}"))?;
+            stage.process(&mut frame, &mut Context::new(i, &rig, prediction.as_ref(), &mut report)).with_context(|| format!("{name} on frame {i}"))?;
             ms[k].push(start.elapsed().as_secs_f64() * 1e3);
             if name == "reflection" {
                 score_mask(&mut t, frame.masks.get(MASK_SPECULAR), &truth, &cam, frame.views.reference(), &before, &diffuse);

@@ -7,6 +7,7 @@ mod cmd_config;
 mod cmd_depth_eval;
 mod cmd_eval;
 mod cmd_plugins;
+mod cmd_preprocess;
 mod cmd_preprocess_eval;
 mod cmd_run;
 mod cmd_synth;
@@ -38,6 +39,8 @@ enum Command {
     CalibrateVignetting(cmd_calibrate_vignetting::CalibrateVignettingArgs),
     /// Single-frame error of the configured depth estimator against the input's depth.
     DepthEval(cmd_depth_eval::DepthEvalArgs),
+    /// Run the configured preprocessors alone over a folder of images and write their output.
+    Preprocess(cmd_preprocess::PreprocessArgs),
     /// Highlight mask precision / recall, inpainting error and vignetting bias of the
     /// configured preprocessors against a phantom sequence's ground truth.
     PreprocessEval(cmd_preprocess_eval::PreprocessEvalArgs),
@@ -60,6 +63,7 @@ fn main() -> std::process::ExitCode {
         Command::DepthEval(a) => cmd_depth_eval::run(&a),
         Command::CalibrateLight(a) => cmd_calibrate_light::run(&a),
         Command::PreprocessEval(a) => cmd_preprocess_eval::run(&a),
+        Command::Preprocess(a) => cmd_preprocess::run(&a),
         Command::CalibrateVignetting(a) => cmd_calibrate_vignetting::run(&a),
     };
     match result {

@@ -136,3 +136,93 @@ fn calibrate_light_recovers_the_phantoms_light() {
         assert!((profile(&fit) / profile(&truth) - 1.0).abs() < 0.03, "V·gain·spot at ({u}, {v}): {stdout}");
     }
 }
+
+#[test]
+fn calibrate_vignetting_recovers_the_phantoms_fall_off_and_preprocess_eval_scores_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("phantom");
+    let args = ["synth", "--preset", "7", "--frames", "21", "--size", "naneye", "--flat-field", "6", "--out", input.to_str().unwrap(), "-q"];
+    let (ok, _, err) = output(&args);
+    assert!(ok, "{err}");
+    let out = input.join("vignetting.toml");
+    let camera = input.join("camera.toml");
+    let (ok, stdout, err) = output(&[
+        "calibrate-vignetting",
+        "--images",
+        input.join("flat_field").to_str().unwrap(),
+        "--camera",
+        camera.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    // Truth: the light model's V · μ.
+    let truth = capsule_slam_framework::io::read_light_file(&input.join("light.toml")).unwrap();
+    let fit = capsule_slam_framework::io::read_vignetting_file(&out).unwrap();
+    let cam = capsule_slam_framework::io::read_camera_file(&camera).unwrap().camera();
+    use capsule_slam_framework::frame::Falloff;
+    for (u, v) in [(cam.cx + 40.0, cam.cy), (cam.cx, cam.cy + 80.0), (cam.cx + 80.0, cam.cy + 60.0)] {
+        let (f, t) = (
+            fit.falloff(&cam, u, v, Falloff::LensAndLight),
+            capsule_slam_framework::light::vignetting::light_falloff(&truth, &cam, u, v, Falloff::LensAndLight),
+        );
+        assert!((f / t - 1.0).abs() < 0.02, "V·μ at ({u}, {v}): {f} against {t}; {stdout}");
+    }
+    // The eval scores the file source and the reflection remover against the phantom's truth.
+    let (ok, stdout, err) = output(&[
+        "preprocess-eval",
+        "--input",
+        input.to_str().unwrap(),
+        "--every",
+        "5",
+        "--set",
+        "plugins.vignetting.source=file",
+        "--set",
+        "plugins.reflection.dilate_px=0",
+    ]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("highlight mask: precision") && stdout.contains("worst radial bias"), "{stdout}");
+    let bias: f64 = stdout.split("worst radial bias ").nth(1).and_then(|s| s.split(' ').next()).and_then(|s| s.parse().ok()).unwrap();
+    assert!(bias < 2.0, "{stdout}");
+    // Missing flat-field folder: the error names it.
+    let (ok, _, err) = output(&["calibrate-vignetting", "--images", "/nonexistent/flats", "--camera", camera.to_str().unwrap()]);
+    assert!(!ok && err.contains("/nonexistent/flats"), "{err}");
+}
+
+#[test]
+fn preprocess_writes_the_corrected_frames_of_a_plain_image_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("phantom");
+    let (ok, _, err) = output(&["synth", "--preset", "7", "--frames", "3", "--size", "naneye", "--out", input.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    let out = tmp.path().join("pre");
+    let (ok, stdout, err) = output(&[
+        "preprocess",
+        "--input",
+        input.join("rgb").to_str().unwrap(),
+        "--camera",
+        input.join("camera.toml").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--set",
+        "plugins.vignetting.source=sequence",
+        "--set",
+        "plugins.vignetting.sequence_model=mean",
+    ]);
+    assert!(ok, "{err}");
+    assert_eq!(stdout.matches("highlights").count(), 3, "{stdout}");
+    for i in 0..3 {
+        assert!(out.join(format!("{i:04}.png")).exists() && out.join(format!("{i:04}_strip.png")).exists());
+    }
+    // The light model is not beside the images: source = light says where to put it.
+    let (ok, _, err) = output(&[
+        "preprocess",
+        "--input",
+        input.join("rgb").to_str().unwrap(),
+        "--camera",
+        input.join("camera.toml").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("light.toml") && err.contains("source"), "{err}");
+}

@@ -11,12 +11,13 @@
 //! calibrate-vignetting` on flat-field frames) or `sequence` (no calibration: estimated from the
 //! first `learn_frames` frames themselves, [`sequence`]).
 //!
-//! In linear terms the corrected value is `s · L / F(u)`, `s = min(1, min F)` over the field of
-//! view so that nothing clips; as the encoding is a power law this is one gain per pixel on the
-//! 8-bit values, `(s / F)^(1/γ)`. The frame records what was divided, the scale and γ
-//! (`CameraFrame::photometry`), so that a depth estimator with a light model sees the image it
-//! models; pixels clipped by the sensor are masked as `saturated` (their corrected value would
-//! no longer be clipped, so nothing later could tell). Applying the stage twice does nothing the
+//! In linear terms the corrected value is `s · L / F(u)`, F floored at `1 / max_gain`, s = 1
+//! (`scale = "centre"`: the principal point keeps its value, pixels that the correction clips are
+//! masked) or the smallest F in view (`"no-clip"`); as the encoding is a power law this is one
+//! gain per pixel on the 8-bit values, `(s / F)^(1/γ)`. The frame records what was divided, the
+//! scale and γ (`CameraFrame::photometry`), so that a depth estimator with a light model sees the
+//! image it models; pixels clipped by the sensor are masked as `saturated` (their corrected value
+//! would no longer look clipped, so nothing later could tell). Applying the stage twice does nothing the
 //! second time (the record says the fall-off is already divided).
 
 pub mod sequence;
@@ -30,6 +31,26 @@ use capsule_slam_framework::{CameraFrame, Context, Mask, Plugin, Preprocessor, R
 use serde::{Deserialize, Serialize};
 
 use sequence::Learner;
+
+/// How the sequence estimate removes the scene from the fall-off.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SequenceModel {
+    /// Mean brightness per ring over cos³α.
+    Mean,
+    /// Brightness over the predicted near-light shading.
+    Shading,
+}
+
+/// The brightness reference of the corrected image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OutputScale {
+    /// The principal point keeps its value; clipped pixels are masked.
+    Centre,
+    /// Scaled by the smallest fall-off in view: nothing clips.
+    NoClip,
+}
 
 /// Where the fall-off comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -59,11 +80,24 @@ capsule_slam_framework::plugin_params! {
         pub learn_frames: u32 = 60; unit = "frames"; range = 1.0..=100000.0;
         /// Source `sequence`: terms of the radial polynomial (r², r⁴, r⁶).
         pub degree: u32 = 3; unit = "-"; range = 1.0..=3.0;
+        /// Source `sequence`: `mean` (the radial profile of the frames' mean brightness over the
+        /// flat target's cos³α: needs scenes without radial structure of their own) or
+        /// `shading` (each pixel's brightness over its near-light shading cos θ / r² from the
+        /// map's prediction at the last pose: needs measured or stereo depth; frames before the
+        /// first prediction are not corrected).
+        pub sequence_model: SequenceModel = SequenceModel::Shading; unit = "-";
         /// Source `sequence`: the encoding exponent of the pixels (light and file give theirs).
         pub gamma: f64 = 2.2; unit = "-"; range = 0.1..=10.0;
         /// A pixel with a channel at or above this was clipped by the sensor: it is masked as
         /// `saturated`.
         pub saturation: u8 = 250; unit = "8-bit"; range = 1.0..=255.0;
+        /// The largest linear gain of the correction (F is floored at its inverse): a poor
+        /// estimate at the rim of the field of view must not turn noise into signal.
+        pub max_gain: f64 = 8.0; unit = "-"; range = 1.0..=100.0;
+        /// Brightness of the output: `centre` (the principal point keeps its value, the rim is
+        /// brightened as in I / F; pixels that clip are masked as `saturated`) or `no-clip` (all
+        /// scaled by the smallest F in view so that nothing clips; the image darkens).
+        pub scale: OutputScale = OutputScale::Centre; unit = "-";
     }
 }
 
@@ -154,23 +188,32 @@ impl Vignetting {
         let (w, h) = (cam.width, cam.height);
         let mut f = vec![1.0f64; w * h];
         let mut min_f = 1.0f64;
+        let floor = 1.0 / self.params.max_gain;
         for (k, fk) in f.iter_mut().enumerate() {
             let (u, v) = ((k % w) as f64, (k / w) as f64);
             if cam.in_fov(u, v) {
-                *fk = self.falloff(cam, u, v)?.max(1e-3);
+                let raw = self.falloff(cam, u, v)?;
+                *fk = if raw.is_finite() { raw.max(floor) } else { 1.0 };
                 min_f = min_f.min(*fk);
             }
         }
+        let scale = match self.params.scale {
+            OutputScale::Centre => 1.0,
+            OutputScale::NoClip => min_f,
+        };
         let inv_gamma = 1.0 / self.gamma();
-        let gain = (0..w * h).map(|k| if cam.in_fov((k % w) as f64, (k / w) as f64) { (min_f / f[k]).powf(inv_gamma) as f32 } else { 1.0 }).collect();
-        Some(Table { camera: cam.clone(), gain, linear_scale: min_f })
+        let gain = (0..w * h).map(|k| if cam.in_fov((k % w) as f64, (k / w) as f64) { (scale / f[k]).powf(inv_gamma) as f32 } else { 1.0 }).collect();
+        Some(Table { camera: cam.clone(), gain, linear_scale: scale })
     }
 
-    /// Divides the fall-off out of one image (8-bit gains of the table).
-    fn apply(gain: &[f32], img: &mut Rgb8) {
-        for (px, g) in img.data_mut().chunks_exact_mut(3).zip(gain) {
+    /// Divides the fall-off out of one image (8-bit gains of the table); marks in `clipped` the
+    /// pixels whose corrected value clips.
+    fn apply(gain: &[f32], img: &mut Rgb8, clipped: &mut Mask) {
+        for ((px, g), clip) in img.data_mut().chunks_exact_mut(3).zip(gain).zip(clipped.data_mut()) {
             for c in px {
-                *c = (f32::from(*c) * g).round().min(255.0) as u8;
+                let v = (f32::from(*c) * g).round();
+                *clip |= v > 255.0;
+                *c = v.min(255.0) as u8;
             }
         }
     }
@@ -199,10 +242,15 @@ impl Preprocessor for Vignetting {
         }
         let ignored = frame.masks.union();
         let sat = self.params.saturation;
-        let saturated = Mask::from_fn(cam.width, cam.height, |x, y| [img.pixel(x, y).iter().any(|c| *c >= sat)]);
+        let mut saturated = Mask::from_fn(cam.width, cam.height, |x, y| [img.pixel(x, y).iter().any(|c| *c >= sat)]);
         if matches!(self.source, FalloffSource::Sequence) && self.learner.frames() < self.params.learn_frames as usize {
             let (gamma, learner) = (self.params.gamma, &mut self.learner);
-            learner.add(img, &cam, |x, y| !saturated.at(x, y) && !ignored.as_ref().is_some_and(|m| m.at(x, y)), gamma);
+            let usable = |x: usize, y: usize| !saturated.at(x, y) && !ignored.as_ref().is_some_and(|m| m.at(x, y));
+            match (self.params.sequence_model, ctx.prediction) {
+                (SequenceModel::Mean, _) => learner.add(img, &cam, usable, gamma),
+                (SequenceModel::Shading, Some(pred)) => learner.add_shaded(img, &cam, usable, gamma, &pred.depth_m, &pred.normals_cam),
+                (SequenceModel::Shading, None) => {}
+            }
             self.table = None;
             ctx.count("learnt_frames", learner.frames() as f64);
         }
@@ -213,9 +261,10 @@ impl Preprocessor for Vignetting {
             ctx.warn(format!("frame {}: vignetting: no fall-off estimate yet (too few usable pixels); the frame is left uncorrected", frame.index));
             return Ok(());
         };
-        for img in frame.views.iter_mut() {
+        for (i, img) in frame.views.iter_mut().enumerate() {
             if img.size() == (cam.width, cam.height) {
-                Self::apply(&table.gain, img);
+                let mut other = Mask::new(cam.width, cam.height);
+                Self::apply(&table.gain, img, if i == 0 { &mut saturated } else { &mut other });
             }
         }
         let n_sat = saturated.data().iter().filter(|v| **v).count();

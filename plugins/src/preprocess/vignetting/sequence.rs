@@ -9,6 +9,12 @@
 //! field times the scene's average radial brightness: exact when the capsule looks at the wall
 //! from every side equally, biased where the scene has a radial structure of its own (a tube seen
 //! along its axis is dark in the middle). The bias is measured in the README.
+//!
+//! With geometry ([`Learner::add_shaded`], the map's prediction at the last pose) each pixel's
+//! luminance is first divided by its near-light shading `cos θ / r²` (light at the optical
+//! centre): what is left is V · μ times the albedo and the gain, and the scene's radial structure
+//! is gone. This needs geometry that does not itself come from the same fall-off (measured or
+//! stereo depth).
 
 use capsule_slam_framework::Rgb8;
 use capsule_slam_framework::camera::PinholeCamera;
@@ -67,6 +73,54 @@ impl Learner {
         }
         self.frames += 1;
         self.profile = self.fit();
+    }
+
+    /// Adds the pixels of `img` that `usable` allows and that have geometry: `depth_m` and
+    /// unit `normals_cam` (toward the camera) of the same view, each luminance divided by its
+    /// shading `cos θ / r²`; and refits.
+    pub fn add_shaded(
+        &mut self,
+        img: &Rgb8,
+        cam: &PinholeCamera,
+        usable: impl Fn(usize, usize) -> bool,
+        gamma: f64,
+        depth_m: &capsule_slam_framework::DepthMap,
+        normals_cam: &capsule_slam_framework::Image<f32, 3>,
+    ) {
+        let decode: [f64; 256] = std::array::from_fn(|v| (v as f64 / 255.0).powf(gamma));
+        let (w, h) = img.size();
+        if depth_m.size() != (w, h) || normals_cam.size() != (w, h) {
+            return;
+        }
+        let mut added = false;
+        for y in 0..h {
+            for x in 0..w {
+                let (u, v) = (x as f64, y as f64);
+                let d = f64::from(depth_m.at(x, y));
+                if !cam.in_fov(u, v) || !usable(x, y) || !(d.is_finite() && d > 0.0) {
+                    continue;
+                }
+                let p = cam.unproject(u, v, d);
+                let r = p.coords.norm();
+                let n = normals_cam.pixel(x, y);
+                let cos_theta = -(f64::from(n[0]) * p.x + f64::from(n[1]) * p.y + f64::from(n[2]) * p.z) / r;
+                if cos_theta < 0.3 {
+                    continue;
+                }
+                let lum: f64 = img.pixel(x, y).iter().zip(NTSC_WEIGHTS).map(|(c, wt)| wt * decode[usize::from(*c)]).sum();
+                if lum <= 0.0 {
+                    continue;
+                }
+                let bin = ((radius2(cam, u, v) * BINS as f64) as usize).min(BINS - 1);
+                self.sum[bin] += lum * r * r / cos_theta;
+                self.count[bin] += 1.0;
+                added = true;
+            }
+        }
+        if added {
+            self.frames += 1;
+            self.profile = self.fit();
+        }
     }
 
     fn fit(&self) -> Option<RadialProfile> {

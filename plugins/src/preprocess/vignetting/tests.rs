@@ -74,11 +74,8 @@ fn a_rendered_flat_field_comes_out_flat() {
     run(&mut Vignetting::new(VignettingParams::default(), FalloffSource::Light(l.clone())), &mut frame, &c);
     let d = frame.photometry.divided.unwrap();
     assert_eq!((d.falloff, d.gamma), (Falloff::LensAndLight, l.gamma));
-    let min = (0..c.width * c.height)
-        .filter(|k| c.in_fov((k % c.width) as f64, (k / c.width) as f64))
-        .map(|k| light_falloff(&l, &c, (k % c.width) as f64, (k / c.width) as f64, Falloff::LensAndLight))
-        .fold(1.0, f64::min);
-    assert!((d.linear_scale - min).abs() < 1e-12, "scale = the smallest fall-off in view");
+    assert_eq!(d.linear_scale, 1.0, "the centre keeps its value");
+    assert_eq!(frame.views.reference().pixel(80, 80), flat_image(&l, &c).pixel(80, 80));
     let b = radial_bias(frame.views.reference(), &c, l.gamma, |u, v| 1.0 / Falloff::flat_to_lens_and_light(cos_alpha(&c, u, v)));
     assert!(b < 0.01, "lens-and-light correction leaves {:.2} % radial bias after cos³α", b * 100.0);
 }
@@ -105,7 +102,13 @@ fn the_sequence_estimate_learns_the_flat_field_from_varied_scenes() {
     // frame) under the light: their mean is the flat field.
     let (c, l) = (cam(), light());
     let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(7);
-    let params = VignettingParams { source: Source::Sequence, divide: Falloff::FlatField, learn_frames: 20, ..VignettingParams::default() };
+    let params = VignettingParams {
+        source: Source::Sequence,
+        sequence_model: SequenceModel::Mean,
+        divide: Falloff::FlatField,
+        learn_frames: 20,
+        ..VignettingParams::default()
+    };
     let mut stage = Vignetting::new(params, FalloffSource::Sequence);
     for i in 0..25 {
         let img = Rgb8::from_fn(c.width, c.height, |x, y| {
@@ -153,6 +156,18 @@ fn black_saturated_and_wrongly_sized_frames_are_handled() {
     let mut white = CameraFrame::mono(1, 0.0, Rgb8::filled(c.width, c.height, 255));
     run(&mut stage, &mut white, &c);
     assert!(white.masks.get(MASK_SATURATED).unwrap().data().iter().all(|v| *v));
+    // No-clip scaling darkens instead, and the record says by how much.
+    let params = VignettingParams { scale: OutputScale::NoClip, ..VignettingParams::default() };
+    let mut dark = CameraFrame::mono(1, 0.0, Rgb8::filled(c.width, c.height, 200));
+    run(&mut Vignetting::new(params, FalloffSource::Light(l.clone())), &mut dark, &c);
+    let d = dark.photometry.divided.unwrap();
+    assert!(d.linear_scale < 0.7 && dark.masks.get(MASK_SATURATED).is_none());
+    assert_eq!(dark.views.reference().pixel(80, 80), [(200.0 * d.linear_scale.powf(1.0 / l.gamma)).round() as u8; 3]);
+    // A bright rim that the correction clips is masked.
+    let mut bright = CameraFrame::mono(1, 0.0, Rgb8::filled(c.width, c.height, 240));
+    run(&mut stage, &mut bright, &c);
+    let m = bright.masks.get(MASK_SATURATED).unwrap();
+    assert!(!m.at(80, 80) && m.at(80, 8), "centre kept, rim clipped");
     let mut odd = CameraFrame::mono(2, 0.0, Rgb8::new(37, 23));
     let mut report = StageReport::default();
     let e = stage.process(&mut odd, &mut Context::new(2, &Rig::Mono(c.clone()), None, &mut report)).unwrap_err().to_string();
@@ -160,11 +175,11 @@ fn black_saturated_and_wrongly_sized_frames_are_handled() {
     let odd_cam = PinholeCamera::new(37, 23, 20.0, 20.0, 18.0, 11.0);
     let mut odd = CameraFrame::mono(3, 0.0, Rgb8::filled(37, 23, 100));
     run(&mut stage, &mut odd, &odd_cam);
-    // No round field of view: every pixel is corrected, the darkest-falling corner keeps its
-    // value (its gain is 1), the centre is scaled by s^(1/γ).
-    let s = (light_falloff(&l, &odd_cam, 0.0, 0.0, Falloff::LensAndLight)).powf(1.0 / l.gamma);
-    assert_eq!(odd.views.reference().pixel(0, 0), [100; 3]);
-    assert_eq!(odd.views.reference().pixel(18, 11), [(100.0 * s).round() as u8; 3]);
+    // No round field of view: every pixel is corrected, the centre keeps its value, a corner is
+    // brightened by F^(−1/γ).
+    let g = light_falloff(&l, &odd_cam, 0.0, 0.0, Falloff::LensAndLight).powf(-1.0 / l.gamma);
+    assert_eq!(odd.views.reference().pixel(18, 11), [100; 3]);
+    assert_eq!(odd.views.reference().pixel(0, 0), [(100.0 * g).round() as u8; 3]);
     // A sequence estimate with nothing usable leaves the frame alone and says so.
     let mut seq = Vignetting::new(VignettingParams { source: Source::Sequence, ..VignettingParams::default() }, FalloffSource::Sequence);
     let mut black = CameraFrame::mono(0, 0.0, Rgb8::new(c.width, c.height));
@@ -193,4 +208,45 @@ fn near_light_sfs_reads_the_same_depth_from_a_corrected_frame() {
         let e = depth_error(&depth_of(&frame), &f.depth_m, false).unwrap().abs_rel;
         assert!((e - base).abs() < 0.004, "{divide:?}: AbsRel {e:.4} against {base:.4} uncorrected");
     }
+}
+
+#[test]
+fn the_shading_model_learns_the_fall_off_inside_a_tube_where_the_mean_cannot() {
+    // Phantom preset 2 (the capsule looks along the tube: dark in the middle), with its exact
+    // geometry as the map's prediction. Truth: the light model's V · μ.
+    let spec = PhantomSpec { size: capsule_slam_framework::phantom::SizePreset::NanEye, frames: 300, ..PhantomSpec::preset(2) };
+    let ph = Phantom::new(spec).unwrap();
+    let c = ph.camera.clone();
+    let rig = Rig::Mono(c.clone());
+    let mut learners = [SequenceModel::Shading, SequenceModel::Mean].map(|m| {
+        let params = VignettingParams { source: Source::Sequence, sequence_model: m, learn_frames: 30, ..VignettingParams::default() };
+        Vignetting::new(params, FalloffSource::Sequence)
+    });
+    for i in (0..300).step_by(10) {
+        let f = ph.render(i);
+        let normals = crate::common::maps::normal_map(&crate::common::maps::vertex_map(&f.depth_m, &c), 1, 0.002);
+        let mut view = capsule_slam_framework::ModelView::empty(c.width, c.height, f.t_world_cam);
+        view.depth_m = f.depth_m.clone();
+        view.normals_cam = normals;
+        for stage in &mut learners {
+            let mut frame = CameraFrame::mono(i, 0.0, f.rgb.clone());
+            let mut report = StageReport::default();
+            stage.process(&mut frame, &mut Context::new(i, &rig, Some(&view), &mut report)).unwrap();
+        }
+    }
+    let worst = |stage: &Vignetting| {
+        let mut rings = [(0.0, 0.0); 8];
+        for k in 0..c.width * c.height {
+            let (u, v) = ((k % c.width) as f64, (k / c.width) as f64);
+            if c.in_fov(u, v) {
+                let r = ((capsule_slam_framework::light::vignetting::radius2(&c, u, v) * 8.0) as usize).min(7);
+                rings[r].0 += stage.falloff(&c, u, v).unwrap() / light_falloff(&ph.light, &c, u, v, Falloff::LensAndLight);
+                rings[r].1 += 1.0;
+            }
+        }
+        rings.iter().filter(|r| r.1 > 0.0).map(|r| (r.0 / r.1 - 1.0).abs()).fold(0.0, f64::max)
+    };
+    let (shading, mean) = (worst(&learners[0]), worst(&learners[1]));
+    assert!(shading < 0.03, "shading model: {:.1} % radial bias", shading * 100.0);
+    assert!(mean > 0.2, "the mean model should be fooled by the tube ({:.1} %)", mean * 100.0);
 }
