@@ -97,7 +97,7 @@ impl Learner {
             for x in 0..w {
                 let (u, v) = (x as f64, y as f64);
                 let d = f64::from(depth_m.at(x, y));
-                if !cam.in_fov(u, v) || !usable(x, y) || !(d.is_finite() && d > 0.0) {
+                if !(cam.in_fov(u, v) && usable(x, y) && d.is_finite() && d > 0.0) {
                     continue;
                 }
                 let p = cam.unproject(u, v, d);
