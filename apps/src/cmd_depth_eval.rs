@@ -43,18 +43,10 @@ pub fn run(args: &DepthEvalArgs) -> anyhow::Result<()> {
     }
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
     let env = BuildEnv::new(dataset.rig(), Some(args.input.clone()));
-    let build = |name: &str| -> anyhow::Result<Stage> {
-        let entry = registry.get(name).ok_or_else(|| anyhow!("unknown plugin {name}"))?;
-        (entry.build)(&resolved.get(name).cloned().unwrap_or_default(), &env).map_err(|e| anyhow!("building {name}: {e}"))
+    let mut pre = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
+    let Stage::DepthEstimator(mut depth) = crate::stages::build(&registry, &resolved, &env, &config.pipeline.depth)? else {
+        bail!("{} is not a depth estimator", config.pipeline.depth)
     };
-    let mut pre = Vec::new();
-    for name in &config.pipeline.preprocess {
-        match build(name)? {
-            Stage::Preprocessor(p) => pre.push(p),
-            _ => bail!("{name} is not a preprocessor"),
-        }
-    }
-    let Stage::DepthEstimator(mut depth) = build(&config.pipeline.depth)? else { bail!("{} is not a depth estimator", config.pipeline.depth) };
     let rig = dataset.rig();
     let (mut raw, mut scaled, mut ms) = (Vec::new(), Vec::new(), Vec::new());
     for i in (0..dataset.len()).step_by(args.every.max(1)) {
@@ -62,7 +54,7 @@ pub fn run(args: &DepthEvalArgs) -> anyhow::Result<()> {
         let truth = frame.depth_m.clone().ok_or_else(|| anyhow!("frame {i} has no depth"))?;
         let mut report = StageReport::default();
         let start = Instant::now();
-        for p in &mut pre {
+        for (_, p) in &mut pre {
             p.process(&mut frame, &mut Context::new(i, &rig, None, &mut report))?;
         }
         let est = depth.estimate(&frame, &mut Context::new(i, &rig, None, &mut report))?;

@@ -4,14 +4,14 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context as _, anyhow, bail};
+use anyhow::Context as _;
 use capsule_slam_framework::Rgb8;
 use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
 use capsule_slam_framework::frame::MASK_SPECULAR;
 use capsule_slam_framework::io::{Dataset, images, read_camera_file};
-use capsule_slam_framework::registry::{BuildEnv, Stage};
+use capsule_slam_framework::registry::BuildEnv;
 
 /// Arguments of `preprocess`.
 #[derive(clap::Args, Debug)]
@@ -46,14 +46,7 @@ pub fn run(args: &PreprocessArgs) -> anyhow::Result<()> {
     let dataset = Dataset::open(&args.input, &config.input, camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
     let env = BuildEnv::new(dataset.rig(), Some(args.input.clone()));
-    let mut stages = Vec::new();
-    for name in &config.pipeline.preprocess {
-        let entry = registry.get(name).ok_or_else(|| anyhow!("unknown plugin {name}"))?;
-        match (entry.build)(&resolved.get(name).cloned().unwrap_or_default(), &env).map_err(|e| anyhow!("building {name}: {e}"))? {
-            Stage::Preprocessor(p) => stages.push((name.clone(), p)),
-            _ => bail!("{name} is not a preprocessor"),
-        }
-    }
+    let mut stages = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let rig = dataset.rig();
     for i in 0..dataset.len() {

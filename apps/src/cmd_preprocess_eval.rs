@@ -6,14 +6,14 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context as _, anyhow, bail};
+use anyhow::{Context as _, bail};
 use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
 use capsule_slam_framework::frame::MASK_SPECULAR;
 use capsule_slam_framework::io::{Dataset, images};
 use capsule_slam_framework::light::vignetting::{light_falloff, radius2};
-use capsule_slam_framework::registry::{BuildEnv, Stage};
+use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Iso3, Mask, ModelView, Rgb8};
 use capsule_slam_plugins::common::maps::{normal_map, vertex_map};
 
@@ -70,14 +70,7 @@ pub fn run(args: &PreprocessEvalArgs) -> anyhow::Result<()> {
         .with_context(|| format!("preprocess-eval needs the phantom's light model {}: run it on a `capsule-slam synth` folder", light_path.display()))?;
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
     let env = BuildEnv::new(dataset.rig(), Some(args.input.clone()));
-    let mut stages = Vec::new();
-    for name in &config.pipeline.preprocess {
-        let entry = registry.get(name).ok_or_else(|| anyhow!("unknown plugin {name}"))?;
-        match (entry.build)(&resolved.get(name).cloned().unwrap_or_default(), &env).map_err(|e| anyhow!("building {name}: {e}"))? {
-            Stage::Preprocessor(p) => stages.push((name.clone(), p)),
-            _ => bail!("{name} is not a preprocessor"),
-        }
-    }
+    let mut stages = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     if stages.is_empty() {
         bail!("pipeline.preprocess is empty: nothing to evaluate");
     }

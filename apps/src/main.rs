@@ -12,6 +12,7 @@ mod cmd_preprocess_eval;
 mod cmd_run;
 mod cmd_synth;
 mod plot;
+mod stages;
 
 use clap::{Parser, Subcommand};
 

@@ -196,33 +196,19 @@ fn preprocess_writes_the_corrected_frames_of_a_plain_image_folder() {
     let (ok, _, err) = output(&["synth", "--preset", "7", "--frames", "3", "--size", "naneye", "--out", input.to_str().unwrap(), "-q"]);
     assert!(ok, "{err}");
     let out = tmp.path().join("pre");
-    let (ok, stdout, err) = output(&[
-        "preprocess",
-        "--input",
-        input.join("rgb").to_str().unwrap(),
-        "--camera",
-        input.join("camera.toml").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--set",
-        "plugins.vignetting.source=sequence",
-        "--set",
-        "plugins.vignetting.sequence_model=mean",
-    ]);
+    let (rgb, camera) = (input.join("rgb"), input.join("camera.toml"));
+    let preprocess = |extra: &[&str]| {
+        let mut args = vec!["preprocess", "--input", rgb.to_str().unwrap(), "--camera", camera.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        output(&args)
+    };
+    let (ok, stdout, err) = preprocess(&["--set", "plugins.vignetting.source=sequence", "--set", "plugins.vignetting.sequence_model=mean"]);
     assert!(ok, "{err}");
     assert_eq!(stdout.matches("highlights").count(), 3, "{stdout}");
     for i in 0..3 {
         assert!(out.join(format!("{i:04}.png")).exists() && out.join(format!("{i:04}_strip.png")).exists());
     }
     // The light model is not beside the images: source = light says where to put it.
-    let (ok, _, err) = output(&[
-        "preprocess",
-        "--input",
-        input.join("rgb").to_str().unwrap(),
-        "--camera",
-        input.join("camera.toml").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (ok, _, err) = preprocess(&[]);
     assert!(!ok && err.contains("light.toml") && err.contains("source"), "{err}");
 }
