@@ -208,7 +208,11 @@ fn preprocess_writes_the_corrected_frames_of_a_plain_image_folder() {
     for i in 0..3 {
         assert!(out.join(format!("{i:04}.png")).exists() && out.join(format!("{i:04}_strip.png")).exists());
     }
-    // The light model is not beside the images: source = light says where to put it.
+    // Without a light model beside the images, `auto` falls back to the sequence estimate (the
+    // shading model has no prediction outside a pipeline: frames left alone, with a warning);
+    // `light` asked for explicitly says where to put it.
     let (ok, _, err) = preprocess(&[]);
+    assert!(ok && err.contains("no fall-off estimate yet"), "{err}");
+    let (ok, _, err) = preprocess(&["--set", "plugins.vignetting.source=light"]);
     assert!(!ok && err.contains("light.toml") && err.contains("source"), "{err}");
 }

@@ -56,6 +56,9 @@ pub enum OutputScale {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Source {
+    /// `light` if the input has `light_file`, else `file` if it has `vignetting_file`, else
+    /// `sequence`.
+    Auto,
     /// `light.toml`: V and the LED profile, per pixel.
     Light,
     /// `vignetting.toml` (calibrate-vignetting).
@@ -67,8 +70,9 @@ pub enum Source {
 capsule_slam_framework::plugin_params! {
     /// Parameters of `vignetting`.
     pub struct VignettingParams {
-        /// Where the fall-off comes from: `light`, `file` or `sequence`.
-        pub source: Source = Source::Light; unit = "-";
+        /// Where the fall-off comes from: `light`, `file`, `sequence`, or `auto` (the first of
+        /// them whose file the input folder has).
+        pub source: Source = Source::Auto; unit = "-";
         /// What to divide: `lens-and-light` (for near-light shape from shading) or `flat-field`
         /// (for a distant-light model such as tsai-shah).
         pub divide: Falloff = Falloff::LensAndLight; unit = "-";
@@ -130,7 +134,13 @@ impl Plugin for Vignetting {
             Some(dir) => dir.join(name),
             None => std::path::PathBuf::from(name),
         };
-        let source = match params.source {
+        let chosen = match params.source {
+            Source::Auto if path(&params.light_file).is_file() => Source::Light,
+            Source::Auto if path(&params.vignetting_file).is_file() => Source::File,
+            Source::Auto => Source::Sequence,
+            s => s,
+        };
+        let source = match chosen {
             Source::Light => FalloffSource::Light(capsule_slam_framework::io::read_light_file(&path(&params.light_file)).map_err(|e| {
                 StageError::invalid_input(format!(
                     "{e}; `vignetting` with source = \"light\" needs the capsule's light model: put light.toml in the input folder, or set plugins.vignetting.source = \"file\" (a calibrated vignetting.toml) or \"sequence\""
@@ -141,7 +151,7 @@ impl Plugin for Vignetting {
                     "{e}; `vignetting` with source = \"file\" needs a vignetting.toml: `capsule-slam calibrate-vignetting` writes one from flat-field frames, or set plugins.vignetting.source = \"sequence\""
                 ))
             })?),
-            Source::Sequence => FalloffSource::Sequence,
+            Source::Sequence | Source::Auto => FalloffSource::Sequence,
         };
         Ok(Self::new(params, source))
     }
