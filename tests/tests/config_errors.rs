@@ -144,5 +144,6 @@ fn a_camera_override_is_validated() {
 fn an_empty_registry_says_nothing_is_registered() {
     let c = load(OK, &[]).unwrap();
     let e = validate(&c, &Registry::empty(), ViewKind::Mono, "x").unwrap_err();
-    assert!(e.problems[0].fix.contains("no depth estimator plugin is registered"), "{e}");
+    assert!(e.problems.iter().any(|p| p.fix.contains("no depth estimator plugin is registered")), "{e}");
+    assert!(e.problems.iter().any(|p| p.fix.contains("no preprocessor plugin is registered")), "{e}");
 }

@@ -13,7 +13,13 @@ use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_tests::stages::test_registry;
 
 fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Summary, Vec<FrameRecord>) {
-    let sets = ["pipeline.depth=sensor".to_string(), format!("pipeline.loop_closer={closer}"), "plugins.surfel-cpu.delta_t=15".to_string()];
+    // Without preprocessors, as the README's loop-closure matrix was measured.
+    let sets = [
+        "pipeline.depth=sensor".to_string(),
+        "pipeline.preprocess=[]".to_string(),
+        format!("pipeline.loop_closer={closer}"),
+        "plugins.surfel-cpu.delta_t=15".to_string(),
+    ];
     let cfg = Config::load(None, &sets).unwrap();
     let registry = test_registry();
     let ds = Dataset::open(data, &cfg.input, None).unwrap();

@@ -51,7 +51,9 @@ fn masked_highlights_never_reach_the_map() {
         assert!(white < 10, "frame {i}: the diffuse tissue has {white} white pixels (noise)");
     }
     let oracle = ["pipeline.depth=sensor", "pipeline.tracker=ground-truth"];
-    let (_, plain) = run_with(&data, &tmp.path().join("plain"), &oracle);
+    let mut plain_set = oracle.to_vec();
+    plain_set.push("pipeline.preprocess=[]");
+    let (_, plain) = run_with(&data, &tmp.path().join("plain"), &plain_set);
     let mut with = oracle.to_vec();
     with.push("pipeline.preprocess=[\"reflection\"]");
     let (records, cleaned) = run_with(&data, &tmp.path().join("cleaned"), &with);
@@ -69,7 +71,7 @@ fn vignetting_correction_leaves_the_monocular_depth_as_good() {
     let ph = Phantom::new(PhantomSpec { frames: 12, size: SizePreset::NanEye, ..PhantomSpec::preset(1) }).unwrap();
     write_sequence(&ph, &data, &|_| {}).unwrap();
     let mean_abs_rel = |records: &[FrameRecord]| records.iter().map(|r| r.depth_abs_rel.unwrap()).sum::<f64>() / records.len() as f64;
-    let (raw, _) = run_with(&data, &tmp.path().join("raw"), &[]);
+    let (raw, _) = run_with(&data, &tmp.path().join("raw"), &["pipeline.preprocess=[]"]);
     let a = mean_abs_rel(&raw);
     // Scaled so that nothing clips, the same pixels are used: the same depth, to the 8-bit
     // rounding of the correction.

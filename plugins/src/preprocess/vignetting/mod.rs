@@ -105,11 +105,15 @@ capsule_slam_framework::plugin_params! {
     }
 }
 
+/// Fractional bits of the fixed-point gains (an exact 8-bit result for gains up to 2^(32−8−12)).
+const GAIN_BITS: u32 = 12;
+
 /// Per-camera gains.
 struct Table {
     camera: PinholeCamera,
-    /// Gain per pixel on the 8-bit values, `(s / F)^(1/γ)` (1 outside the field of view).
-    gain: Vec<f32>,
+    /// Gain per pixel on the 8-bit values, `(s / F)^(1/γ)` (1 outside the field of view), in
+    /// fixed point with `GAIN_BITS` fractional bits.
+    gain: Vec<u32>,
     /// s.
     linear_scale: f64,
 }
@@ -212,18 +216,21 @@ impl Vignetting {
             OutputScale::NoClip => min_f,
         };
         let inv_gamma = 1.0 / self.gamma();
-        let gain = (0..w * h).map(|k| if cam.in_fov((k % w) as f64, (k / w) as f64) { (scale / f[k]).powf(inv_gamma) as f32 } else { 1.0 }).collect();
+        let one = f64::from(1u32 << GAIN_BITS);
+        let gain = (0..w * h)
+            .map(|k| if cam.in_fov((k % w) as f64, (k / w) as f64) { ((scale / f[k]).powf(inv_gamma) * one).round() as u32 } else { 1 << GAIN_BITS })
+            .collect();
         Some(Table { camera: cam.clone(), gain, linear_scale: scale })
     }
 
     /// Divides the fall-off out of one image (8-bit gains of the table); marks in `clipped` the
     /// pixels whose corrected value clips.
-    fn apply(gain: &[f32], img: &mut Rgb8, clipped: &mut Mask) {
+    fn apply(gain: &[u32], img: &mut Rgb8, clipped: &mut Mask) {
         for ((px, g), clip) in img.data_mut().chunks_exact_mut(3).zip(gain).zip(clipped.data_mut()) {
             for c in px {
-                let v = (f32::from(*c) * g).round();
-                *clip |= v > 255.0;
-                *c = v.min(255.0) as u8;
+                let v = (u32::from(*c) * g + (1 << (GAIN_BITS - 1))) >> GAIN_BITS;
+                *clip |= v > 255;
+                *c = v.min(255) as u8;
             }
         }
     }
@@ -252,7 +259,8 @@ impl Preprocessor for Vignetting {
         }
         let ignored = frame.masks.union();
         let sat = self.params.saturation;
-        let mut saturated = Mask::from_fn(cam.width, cam.height, |x, y| [img.pixel(x, y).iter().any(|c| *c >= sat)]);
+        let flags = img.data().chunks_exact(3).map(|c| c[0].max(c[1]).max(c[2]) >= sat).collect();
+        let mut saturated = Mask::from_vec(cam.width, cam.height, flags).map_err(|e| StageError::invalid_input(e.to_string()))?;
         if matches!(self.source, FalloffSource::Sequence) && self.learner.frames() < self.params.learn_frames as usize {
             let (gamma, learner) = (self.params.gamma, &mut self.learner);
             let usable = |x: usize, y: usize| !saturated.at(x, y) && !ignored.as_ref().is_some_and(|m| m.at(x, y));
