@@ -84,7 +84,7 @@ capsule_slam_framework::plugin_params! {
         pub learn_frames: u32 = 60; unit = "frames"; range = 1.0..=100000.0;
         /// Source `sequence`: terms of the radial polynomial (r², r⁴, r⁶).
         pub degree: u32 = 3; unit = "-"; range = 1.0..=3.0;
-        /// Source `sequence`: `mean` (the radial profile of the frames' mean brightness over the
+        /// Source `sequence`: `mean` (the radial profile of the frames' (trimmed) mean brightness over the
         /// flat target's cos³α: needs scenes without radial structure of their own) or
         /// `shading` (each pixel's brightness over its near-light shading cos θ / r² from the
         /// map's prediction at the last pose: needs measured or stereo depth; frames before the

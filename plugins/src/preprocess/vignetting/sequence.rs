@@ -1,5 +1,5 @@
 //! The fall-off estimated from the sequence itself, when there is no calibration (frontend
-//! digest §D: "the temporal median of a long video", lens and light mixed): the mean linear
+//! digest §D: "the temporal median of a long video", lens and light mixed): the trimmed mean linear
 //! luminance of the usable pixels over cos³α (the flat field's own geometry, known from the
 //! intrinsics) in each of `BINS` rings of r² over the frames seen, fitted by weighted least
 //! squares with `G(r²) = a0 + a1 r² + a2 r⁴ + a3 r⁶` and normalised, `F = G / a0`: the
@@ -25,11 +25,19 @@ use nalgebra::{DMatrix, DVector};
 
 /// Rings of r² in [0, 1].
 const BINS: usize = 64;
+/// Histogram bins of a ring's log samples (for the trimmed mean).
+const HIST: usize = 2048;
+/// Share of each ring's samples dropped at either end before averaging.
+const TRIM: f64 = 0.1;
+/// Range of the log samples (luminance, or luminance · r² / cos θ in m²).
+const LN_LO: f64 = -24.0;
+const LN_HI: f64 = 8.0;
 
 /// Accumulated radial statistics.
 pub struct Learner {
     degree: usize,
-    sum: Vec<f64>,
+    /// Per ring, a histogram of the samples' logarithms (`HIST` bins over [`LN_LO`, `LN_HI`]).
+    hist: Vec<Vec<u32>>,
     count: Vec<f64>,
     frames: usize,
     profile: Option<RadialProfile>,
@@ -38,7 +46,7 @@ pub struct Learner {
 impl Learner {
     /// An empty estimate with `degree` polynomial terms.
     pub fn new(degree: usize) -> Self {
-        Self { degree, sum: vec![0.0; BINS], count: vec![0.0; BINS], frames: 0, profile: None }
+        Self { degree, hist: vec![vec![0; HIST]; BINS], count: vec![0.0; BINS], frames: 0, profile: None }
     }
 
     /// Frames added.
@@ -67,8 +75,7 @@ impl Learner {
                     continue;
                 }
                 let bin = ((radius2(cam, u, v) * BINS as f64) as usize).min(BINS - 1);
-                self.sum[bin] += lum;
-                self.count[bin] += 1.0;
+                self.push(bin, lum);
             }
         }
         self.frames += 1;
@@ -112,8 +119,7 @@ impl Learner {
                     continue;
                 }
                 let bin = ((radius2(cam, u, v) * BINS as f64) as usize).min(BINS - 1);
-                self.sum[bin] += lum * r * r / cos_theta;
-                self.count[bin] += 1.0;
+                self.push(bin, lum * r * r / cos_theta);
                 added = true;
             }
         }
@@ -121,6 +127,33 @@ impl Learner {
             self.frames += 1;
             self.profile = self.fit();
         }
+    }
+
+    fn push(&mut self, ring: usize, value: f64) {
+        let t = (value.ln() - LN_LO) / (LN_HI - LN_LO) * HIST as f64;
+        if t.is_finite() {
+            self.hist[ring][(t.max(0.0) as usize).min(HIST - 1)] += 1;
+            self.count[ring] += 1.0;
+        }
+    }
+
+    /// The mean of a ring's samples between their `TRIM` and `1 − TRIM` quantiles (from the
+    /// histogram, bin centres): robust to the highlights and shadows a plain mean takes in.
+    fn trimmed_mean(&self, ring: usize) -> f64 {
+        let (lo, hi) = (TRIM * self.count[ring], (1.0 - TRIM) * self.count[ring]);
+        let (mut below, mut sum, mut weight) = (0.0, 0.0, 0.0);
+        for (i, c) in self.hist[ring].iter().enumerate() {
+            let c = f64::from(*c);
+            // The part of this bin's samples that lies between the two quantiles.
+            let take = (below + c).min(hi) - below.max(lo);
+            if take > 0.0 {
+                let v = (LN_LO + (i as f64 + 0.5) / HIST as f64 * (LN_HI - LN_LO)).exp();
+                sum += take * v;
+                weight += take;
+            }
+            below += c;
+        }
+        if weight > 0.0 { sum / weight } else { 0.0 }
     }
 
     fn fit(&self) -> Option<RadialProfile> {
@@ -132,10 +165,10 @@ impl Learner {
                 continue;
             }
             let r2 = (i as f64 + 0.5) / BINS as f64;
-            let mean = self.sum[i] / self.count[i];
+            let value = self.trimmed_mean(i);
             let row: Vec<f64> = (0..n).map(|k| r2.powi(k as i32)).collect();
             for p in 0..n {
-                b[p] += self.count[i] * row[p] * mean;
+                b[p] += self.count[i] * row[p] * value;
                 for q in 0..n {
                     a[(p, q)] += self.count[i] * row[p] * row[q];
                 }
