@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use anyhow::{Context as _, bail};
 use capsule_slam_framework::frame::Falloff;
 use capsule_slam_framework::io::{images, read_camera_file, write_vignetting_file};
-use capsule_slam_framework::light::vignetting::{RadialProfile, profile_falloff, radius2};
+use capsule_slam_framework::light::vignetting::{RadialProfile, centre_value, profile_falloff, radius2};
 
 /// Arguments of `calibrate-vignetting`.
 #[derive(clap::Args, Debug)]
@@ -69,8 +69,7 @@ pub fn run(args: &CalibrateVignettingArgs) -> anyhow::Result<()> {
     write_vignetting_file(&args.out, &file)?;
     // Residual of the fit per ring of r².
     let profile = RadialProfile { coeffs: file.lens_and_light.clone() };
-    let centre = (0..w * h).filter(|k| radius2(&cam, (k % w) as f64, (k / w) as f64) < 4e-4).map(|k| mean[k]).sum::<f64>()
-        / (0..w * h).filter(|k| radius2(&cam, (k % w) as f64, (k / w) as f64) < 4e-4).count().max(1) as f64;
+    let centre = centre_value(&mean, &cam).unwrap_or(1.0);
     let mut rings = [(0.0, 0.0); 8];
     for (k, m) in mean.iter().enumerate() {
         let (u, v) = ((k % w) as f64, (k / w) as f64);

@@ -139,6 +139,14 @@ pub fn flat_field_linear(light: &LightModel, cam: &PinholeCamera, u: f64, v: f64
     light.linear(cam, u, v, albedo, &p, &n)
 }
 
+/// The value at the principal point of an image of `cam`'s size: the mean of its positive pixels
+/// within 2 % of the half-diagonal of the centre (`None` if there are none).
+pub fn centre_value(image: &[f64], cam: &PinholeCamera) -> Option<f64> {
+    let w = cam.width;
+    let near: Vec<f64> = (0..image.len()).filter(|k| radius2(cam, (k % w) as f64, (k / w) as f64) < 4e-4 && image[*k] > 0.0).map(|k| image[k]).collect();
+    (!near.is_empty()).then(|| near.iter().sum::<f64>() / near.len() as f64)
+}
+
 /// Fits the lens-and-light profile of a `vignetting.toml` to a linear flat-field image of a
 /// target facing the capsule (cos³α divided out first; pixels with value ≤ 0 or outside the
 /// field of view are skipped). `degree` 1 to 3.
@@ -147,12 +155,7 @@ pub fn fit_flat_field(linear: &[f64], cam: &PinholeCamera, gamma: f64, degree: u
     if linear.len() != w * h {
         return None;
     }
-    // The centre value: mean over the pixels within 2 % of the half-diagonal of the centre.
-    let near: Vec<f64> = (0..w * h).filter(|k| radius2(cam, (k % w) as f64, (k / w) as f64) < 4e-4 && linear[*k] > 0.0).map(|k| linear[k]).collect();
-    if near.is_empty() {
-        return None;
-    }
-    let centre = near.iter().sum::<f64>() / near.len() as f64;
+    let centre = centre_value(linear, cam)?;
     let samples: Vec<(f64, f64, f64)> = (0..w * h)
         .filter_map(|k| {
             let (u, v) = ((k % w) as f64, (k / w) as f64);

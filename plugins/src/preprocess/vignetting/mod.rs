@@ -174,7 +174,7 @@ pub enum FalloffSource {
 impl Vignetting {
     /// A corrector from its parameters and fall-off source (`params.source` is ignored).
     pub fn new(params: VignettingParams, source: FalloffSource) -> Self {
-        let learner = Learner::new(params.degree as usize);
+        let learner = Learner::new(params.degree as usize, params.gamma);
         Self { params, source, learner, table: None, warned_twice: false }
     }
 
@@ -257,16 +257,17 @@ impl Preprocessor for Vignetting {
                 cam.height
             )));
         }
-        let ignored = frame.masks.union();
         let sat = self.params.saturation;
         let flags = img.data().chunks_exact(3).map(|c| c[0].max(c[1]).max(c[2]) >= sat).collect();
         let mut saturated = Mask::from_vec(cam.width, cam.height, flags).map_err(|e| StageError::invalid_input(e.to_string()))?;
         if matches!(self.source, FalloffSource::Sequence) && self.learner.frames() < self.params.learn_frames as usize {
-            let (gamma, learner) = (self.params.gamma, &mut self.learner);
+            // Only while learning: the pixels the frame's masks leave.
+            let ignored = frame.masks.union();
+            let learner = &mut self.learner;
             let usable = |x: usize, y: usize| !saturated.at(x, y) && !ignored.as_ref().is_some_and(|m| m.at(x, y));
             match (self.params.sequence_model, ctx.prediction) {
-                (SequenceModel::Mean, _) => learner.add(img, &cam, usable, gamma),
-                (SequenceModel::Shading, Some(pred)) => learner.add_shaded(img, &cam, usable, gamma, &pred.depth_m, &pred.normals_cam),
+                (SequenceModel::Mean, _) => learner.add(img, &cam, usable),
+                (SequenceModel::Shading, Some(pred)) => learner.add_shaded(img, &cam, usable, &pred.depth_m, &pred.normals_cam),
                 (SequenceModel::Shading, None) => {}
             }
             self.table = None;

@@ -36,6 +36,8 @@ const LN_HI: f64 = 8.0;
 /// Accumulated radial statistics.
 pub struct Learner {
     degree: usize,
+    /// 8-bit value → linear.
+    decode: [f64; 256],
     /// Per ring, a histogram of the samples' logarithms (`HIST` bins over [`LN_LO`, `LN_HI`]).
     hist: Vec<Vec<u32>>,
     count: Vec<f64>,
@@ -44,9 +46,16 @@ pub struct Learner {
 }
 
 impl Learner {
-    /// An empty estimate with `degree` polynomial terms.
-    pub fn new(degree: usize) -> Self {
-        Self { degree, hist: vec![vec![0; HIST]; BINS], count: vec![0.0; BINS], frames: 0, profile: None }
+    /// An empty estimate with `degree` polynomial terms, for pixels encoded with `gamma`.
+    pub fn new(degree: usize, gamma: f64) -> Self {
+        Self {
+            degree,
+            decode: std::array::from_fn(|v| (v as f64 / 255.0).powf(gamma)),
+            hist: vec![vec![0; HIST]; BINS],
+            count: vec![0.0; BINS],
+            frames: 0,
+            profile: None,
+        }
     }
 
     /// Frames added.
@@ -60,8 +69,8 @@ impl Learner {
     }
 
     /// Adds the pixels of `img` inside the field of view that `usable` allows, and refits.
-    pub fn add(&mut self, img: &Rgb8, cam: &PinholeCamera, usable: impl Fn(usize, usize) -> bool, gamma: f64) {
-        let decode: [f64; 256] = std::array::from_fn(|v| (v as f64 / 255.0).powf(gamma));
+    pub fn add(&mut self, img: &Rgb8, cam: &PinholeCamera, usable: impl Fn(usize, usize) -> bool) {
+        let decode = self.decode;
         let (w, h) = img.size();
         for y in 0..h {
             for x in 0..w {
@@ -90,11 +99,10 @@ impl Learner {
         img: &Rgb8,
         cam: &PinholeCamera,
         usable: impl Fn(usize, usize) -> bool,
-        gamma: f64,
         depth_m: &capsule_slam_framework::DepthMap,
         normals_cam: &capsule_slam_framework::Image<f32, 3>,
     ) {
-        let decode: [f64; 256] = std::array::from_fn(|v| (v as f64 / 255.0).powf(gamma));
+        let decode = self.decode;
         let (w, h) = img.size();
         if depth_m.size() != (w, h) || normals_cam.size() != (w, h) {
             return;
