@@ -61,7 +61,9 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<()> {
         let mut writer = RunWriter::create(&out, &pipeline.resolved_config().to_toml_string())?;
         let mut records: Vec<FrameRecord> = Vec::new();
         let summary =
-            run(&dataset, &mut pipeline, &mut writer, &RunOptions { max_frames: None, write_map: false, eval_sim3: false }, |r| records.push(r.clone()))?;
+            run(&dataset, &mut pipeline, &mut writer, &RunOptions { max_frames: None, write_map: false, eval_sim3: false, ..RunOptions::default() }, |r| {
+                records.push(r.clone())
+            })?;
         let _ = std::fs::remove_dir_all(&out);
         let stage = |label: &str, f: &dyn Fn(&FrameRecord) -> f64| {
             let mut v: Vec<f64> = records.iter().map(f).collect();

@@ -35,6 +35,10 @@ pub struct RunArgs {
     /// No progress bar.
     #[arg(short, long)]
     quiet: bool,
+    /// Score every loop closure as it is applied (ATE and surface RMSE just before and after,
+    /// `closures.csv`); needs an input with ground truth. Slower: a map snapshot per frame.
+    #[arg(long)]
+    closure_report: bool,
 }
 
 /// The oracle that stands in for a default stage whose real plugin is not in this build.
@@ -102,7 +106,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let n = config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
-    let opts = RunOptions { max_frames: config.input.max_frames, write_map: config.output.map, eval_sim3: false };
+    let opts = RunOptions { max_frames: config.input.max_frames, write_map: config.output.map, eval_sim3: false, closure_report: args.closure_report };
     let result = run_pipeline(&dataset, &mut pipeline, &mut writer, &opts, |rec| {
         for w in rec.warnings() {
             bar.suspend(|| eprintln!("warning: frame {}: {w}", rec.index));

@@ -2,7 +2,7 @@
 //! nodes on a curved sheet with one surface constraint and one pin per node, as a closure
 //! gives), one factorisation per iteration.
 
-use capsule_slam_framework::deformation::DeformationNode;
+use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
 use capsule_slam_plugins::close::deformation::graph::{Constraint, Edges, Graph, GraphWeights};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
@@ -14,15 +14,15 @@ fn graph(n: usize) -> Graph {
     let step = 0.04 / side as f64;
     let nodes: Vec<DeformationNode> =
         (0..n).map(|i| DeformationNode::identity(Point3::new((i / side) as f64 * step, (i % side) as f64 * step, 0.03), (i / side) as u32)).collect();
-    let mut g = Graph::new(nodes.clone(), 4, Some(20), 4, Edges::SpaceInWindow);
+    let mut g = Graph::new(Deformation::new(nodes.clone(), 4, Window::Nodes(20)), 4, Edges::SpaceInWindow);
     let half = (side / 2) as u32;
     for node in &nodes {
         let p = node.position_m + Vector3::new(0.3 * step, 0.4 * step, 0.0);
-        if node.t0 >= half {
-            let bend = 0.001 * ((node.t0 - half) as f64 / half.max(1) as f64).powi(2);
-            g.constrain(Constraint { source_m: p, target_m: p + Vector3::new(0.0, 0.0, bend), time: node.t0 });
+        if node.time >= half {
+            let bend = 0.001 * ((node.time - half) as f64 / half.max(1) as f64).powi(2);
+            g.constrain(Constraint { source_m: p, target_m: p + Vector3::new(0.0, 0.0, bend), time: node.time });
         } else {
-            g.constrain(Constraint { source_m: p, target_m: p, time: node.t0 });
+            g.constrain(Constraint { source_m: p, target_m: p, time: node.time });
         }
     }
     g

@@ -4,15 +4,22 @@
 //! the map (through the fuser) and to the trajectory, so every consumer warps the same way.
 //!
 //! Influencing nodes of a point are the `k` nearest nodes in space (Sumner's rule, the paper's
-//! text) among a candidate set: every node, or (ElasticFusion's rule, `window = Some(m)`) the
-//! `m` nodes nearest in time to the point's own time, so that an old surface and a new one that
-//! cross in space (exactly what a loop closure brings together) are moved by their own nodes.
+//! text) among a candidate set ([`Window`]): every node; ElasticFusion's `m` nodes nearest in
+//! time to the point's own time; or the nodes within a number of frames of it. An old surface
+//! and a new one that cross in space (exactly what a loop closure brings together) are thus
+//! moved by their own nodes.
+//!
+//! Whose time ([`SurfelTime`]): ElasticFusion times nodes and surfels by creation (t0). A surface
+//! the camera keeps seeing is kept consistent with the camera by frame-to-model tracking, so its
+//! error is the camera's error when it was last seen (t), whenever it was created; timed by t,
+//! every surfel in the current view moves with the current camera.
 
 use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::geometry::Iso3;
+use crate::map::Surfel;
 
-/// One graph node: position g, affine 3×3 R and translation t, and its creation time.
+/// One graph node: position g, affine 3×3 R and translation t, and its time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DeformationNode {
     /// Node position g, metres, world frame.
@@ -21,14 +28,14 @@ pub struct DeformationNode {
     pub rotation: Matrix3<f64>,
     /// Translation t, metres (zero when undeformed).
     pub translation_m: Vector3<f64>,
-    /// Frame index the node was sampled at.
-    pub t0: u32,
+    /// Frame index of the node (the [`SurfelTime`] of the surfel it was sampled from).
+    pub time: u32,
 }
 
 impl DeformationNode {
     /// An undeformed node at `position_m`.
-    pub fn identity(position_m: Point3<f64>, t0: u32) -> Self {
-        Self { position_m, rotation: Matrix3::identity(), translation_m: Vector3::zeros(), t0 }
+    pub fn identity(position_m: Point3<f64>, time: u32) -> Self {
+        Self { position_m, rotation: Matrix3::identity(), translation_m: Vector3::zeros(), time }
     }
 
     /// The node's local transform of a point: `R (v − g) + g + t` (one term of Eq. (5)).
@@ -37,39 +44,85 @@ impl DeformationNode {
     }
 }
 
+/// Which nodes may influence a point of a given time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Window {
+    /// Every node (Sumner: space alone).
+    All,
+    /// The m nodes nearest in time (ElasticFusion: 20, the nearest and the m − 1 before it,
+    /// completed by the ones after it if fewer exist).
+    Nodes(usize),
+    /// The nodes within this many frames of the point's time; if fewer than k + 1, the k + 1
+    /// nearest in time.
+    Frames(u32),
+}
+
+/// The time of a surfel that picks its influencing nodes (and the time of the nodes sampled
+/// from surfels).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SurfelTime {
+    /// t0, the frame that created it (ElasticFusion).
+    Created,
+    /// t, the frame that last saw it.
+    LastSeen,
+}
+
+impl SurfelTime {
+    /// This time of `s`.
+    pub fn of(self, s: &Surfel) -> u32 {
+        match self {
+            Self::Created => s.t0,
+            Self::LastSeen => s.t,
+        }
+    }
+}
+
 /// A deformation graph with optimised node transforms.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Deformation {
-    /// The nodes, in time order (by `t0`, stable).
+    /// The nodes, in time order (stable).
     pub nodes: Vec<DeformationNode>,
     /// Number of influencing nodes per point (k; the (k+1)-th nearest gives d_max).
     pub k: usize,
-    /// Candidate nodes per point: `Some(m)`, the m nodes nearest in time to the point's time
-    /// (ElasticFusion: 20, going back in time first); `None`, every node.
-    pub window: Option<usize>,
+    /// Candidate nodes per point.
+    pub window: Window,
+    /// Which surfel time the nodes carry and a surfel is warped by ([`Deformation::warp_surfel`]).
+    pub surfel_time: SurfelTime,
 }
 
 impl Deformation {
     /// A deformation of `nodes` (sorted here by time) with `k` influencing nodes per point among
-    /// the `window` nearest in time (`None`: among all).
-    pub fn new(mut nodes: Vec<DeformationNode>, k: usize, window: Option<usize>) -> Self {
-        nodes.sort_by_key(|n| n.t0);
-        Self { nodes, k, window }
+    /// the `window`, surfels timed by creation (ElasticFusion; see [`Deformation::timed_by`]).
+    pub fn new(mut nodes: Vec<DeformationNode>, k: usize, window: Window) -> Self {
+        nodes.sort_by_key(|n| n.time);
+        Self { nodes, k, window, surfel_time: SurfelTime::Created }
     }
 
-    /// Indices of the candidate nodes of a point of time `time`: ElasticFusion's rule, the node
-    /// nearest in time and the `m − 1` before it, completed by the ones after it if fewer exist.
+    /// The same deformation with surfels timed by `surfel_time`.
+    pub fn timed_by(self, surfel_time: SurfelTime) -> Self {
+        Self { surfel_time, ..self }
+    }
+
+    /// Indices of the candidate nodes of a point of time `time` (nodes are sorted by time, so
+    /// every window is a contiguous range).
     pub fn candidates(&self, time: u32) -> std::ops::Range<usize> {
         let n = self.nodes.len();
+        let nearest_m = |m: usize| {
+            let m = m.clamp(1, n);
+            // The first node at or after `time`, or the one before it if that is nearer.
+            let after = self.nodes.partition_point(|x| x.time < time);
+            let nearest = if after == n || (after > 0 && time - self.nodes[after - 1].time <= self.nodes[after].time - time) { after - 1 } else { after };
+            let start = (nearest + 1).saturating_sub(m);
+            let end = (start + m).min(n);
+            end.saturating_sub(m)..end
+        };
         match self.window {
-            Some(m) if m < n => {
-                let m = m.max(1);
-                // The first node at or after `time`, or the one before it if that is nearer.
-                let after = self.nodes.partition_point(|x| x.t0 < time);
-                let nearest = if after == n || (after > 0 && time - self.nodes[after - 1].t0 <= self.nodes[after].t0 - time) { after - 1 } else { after };
-                let start = (nearest + 1).saturating_sub(m);
-                let end = (start + m).min(n);
-                end.saturating_sub(m)..end
+            Window::Nodes(m) if m < n => nearest_m(m),
+            Window::Frames(w) => {
+                let lo = self.nodes.partition_point(|x| x.time < time.saturating_sub(w));
+                let hi = self.nodes.partition_point(|x| x.time <= time.saturating_add(w));
+                if hi - lo > self.k { lo..hi } else { nearest_m(self.k + 1) }
             }
             _ => 0..n,
         }
@@ -109,6 +162,14 @@ impl Deformation {
     pub fn warp_normal(&self, p: &Point3<f64>, n: &Vector3<f64>, time: u32) -> Vector3<f64> {
         let infl = self.influences(p, time);
         self.warp_normal_with(n, &infl)
+    }
+
+    /// Warps a surfel's position and normal in place (timed by [`Deformation::surfel_time`]).
+    pub fn warp_surfel(&self, s: &mut Surfel) {
+        let p = s.position_m.cast::<f64>();
+        let infl = self.influences(&p, self.surfel_time.of(s));
+        s.normal = self.warp_normal_with(&s.normal.cast(), &infl).cast();
+        s.position_m = self.warp_with(&p, &infl).cast();
     }
 
     /// [`Deformation::warp_point`] with precomputed influences.
@@ -179,7 +240,7 @@ mod tests {
                 nodes.push(DeformationNode::identity(Point3::new(i as f64 * 0.01, j as f64 * 0.01, 0.0), 0));
             }
         }
-        Deformation::new(nodes, k, None)
+        Deformation::new(nodes, k, Window::All)
     }
 
     proptest! {
@@ -227,13 +288,13 @@ mod tests {
         // its own layer only.
         let old = grid(4).nodes;
         let new: Vec<DeformationNode> =
-            old.iter().enumerate().map(|(i, n)| DeformationNode { t0: 100 + i as u32, translation_m: Vector3::new(0.0, 0.0, 0.002), ..*n }).collect();
-        let old: Vec<DeformationNode> = old.iter().enumerate().map(|(i, n)| DeformationNode { t0: i as u32, ..*n }).collect();
+            old.iter().enumerate().map(|(i, n)| DeformationNode { time: 100 + i as u32, translation_m: Vector3::new(0.0, 0.0, 0.002), ..*n }).collect();
+        let old: Vec<DeformationNode> = old.iter().enumerate().map(|(i, n)| DeformationNode { time: i as u32, ..*n }).collect();
         let p = Point3::new(0.012, 0.017, 0.0);
-        let windowed = Deformation::new([new.clone(), old.clone()].concat(), 4, Some(16));
+        let windowed = Deformation::new([new.clone(), old.clone()].concat(), 4, Window::Nodes(16));
         assert!((windowed.warp_point(&p, 3) - p).norm() < 1e-12, "an old point stays");
         assert!((windowed.warp_point(&p, 120) - (p + Vector3::new(0.0, 0.0, 0.002))).norm() < 1e-12, "a new point moves");
-        let spatial = Deformation::new([new, old].concat(), 4, None);
+        let spatial = Deformation::new([new.clone(), old.clone()].concat(), 4, Window::All);
         let mixed = spatial.warp_point(&p, 3).z;
         assert!(mixed > 0.0 && mixed < 0.002, "without a window the layers mix: {mixed}");
         // The window is the m nodes up to the nearest in time, completed forward.
@@ -243,6 +304,41 @@ mod tests {
         assert_eq!(windowed.candidates(20), 0..16);
         assert_eq!(windowed.candidates(57), 0..16, "node 15 (t0 15) is nearer than node 16 (t0 100)");
         assert_eq!(windowed.candidates(58), 1..17, "node 16 is nearer");
+        // A window of frames: the same separation, whatever the node counts.
+        let framed = Deformation::new([new, old].concat(), 4, Window::Frames(30));
+        assert!((framed.warp_point(&p, 3) - p).norm() < 1e-12, "an old point stays");
+        assert!((framed.warp_point(&p, 120) - (p + Vector3::new(0.0, 0.0, 0.002))).norm() < 1e-12, "a new point moves");
+        assert_eq!(framed.candidates(10), 0..16);
+        assert_eq!(framed.candidates(140), 26..32, "frames 110 to 170 hold the nodes of times 110..115");
+        assert_eq!(framed.candidates(60), 12..17, "no node within 30 frames: the k + 1 nearest in time (up to time 100)");
+    }
+
+    #[test]
+    fn a_surfel_is_warped_by_the_time_the_deformation_names() {
+        // Old nodes (time 0..16) stay, new ones (100..116) move by 2 mm; a surfel created at 5
+        // and last seen at 110 moves with the new layer when timed by last sighting.
+        let old = grid(4).nodes;
+        let new: Vec<DeformationNode> =
+            old.iter().enumerate().map(|(i, n)| DeformationNode { time: 100 + i as u32, translation_m: Vector3::new(0.0, 0.0, 0.002), ..*n }).collect();
+        let old: Vec<DeformationNode> = old.iter().enumerate().map(|(i, n)| DeformationNode { time: i as u32, ..*n }).collect();
+        let d = Deformation::new([new, old].concat(), 4, Window::Frames(30));
+        let s = Surfel {
+            position_m: Point3::new(0.012, 0.017, 0.0),
+            normal: Vector3::z(),
+            colour: [0; 3],
+            confidence: 10.0,
+            radius_m: 0.001,
+            t0: 5,
+            t: 110,
+            albedo: 0.0,
+        };
+        let mut created = s;
+        d.clone().warp_surfel(&mut created);
+        assert_eq!(created.position_m, s.position_m, "timed by creation it stays");
+        let mut seen = s;
+        d.timed_by(SurfelTime::LastSeen).warp_surfel(&mut seen);
+        assert!((seen.position_m.z - 0.002).abs() < 1e-7, "timed by last sighting it moves: {}", seen.position_m);
+        assert!((seen.normal.norm() - 1.0).abs() < 1e-6);
     }
 
     #[test]

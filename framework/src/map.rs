@@ -109,6 +109,8 @@ pub struct ModelView {
     pub confidence: GrayF32,
     /// Creation time t0 of the visible surfel (0 where empty).
     pub t0: Image<u32, 1>,
+    /// Last-seen time t of the visible surfel (0 where empty).
+    pub t: Image<u32, 1>,
     /// Fused albedo of the visible surfel (0 where empty or never observed).
     pub albedo: GrayF32,
 }
@@ -123,6 +125,7 @@ impl ModelView {
             colour: Rgb8::new(width, height),
             confidence: GrayF32::new(width, height),
             t0: Image::new(width, height),
+            t: Image::new(width, height),
             albedo: GrayF32::new(width, height),
         }
     }

@@ -2,7 +2,7 @@
 //! but real: the point fuser keeps every fused pixel as a surfel and renders them with a
 //! z-buffer; the shift closer returns a known rigid deformation at a chosen frame.
 
-use capsule_slam_framework::deformation::{Deformation, DeformationNode};
+use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
 use capsule_slam_framework::map::MapStats;
 use capsule_slam_framework::registry::{BuildEnv, PluginEntry};
 use capsule_slam_framework::stage::{FuseStats, LoopClosure, LoopInput};
@@ -96,10 +96,7 @@ impl Fuser for PointFuser {
 
     fn deform(&mut self, closure: &LoopClosure, _ctx: &mut Context) -> Result<(), StageError> {
         for s in &mut self.surfels {
-            let p = s.position_m.cast::<f64>();
-            let infl = closure.deformation.influences(&p, s.t0);
-            s.normal = closure.deformation.warp_normal_with(&s.normal.cast(), &infl).cast();
-            s.position_m = closure.deformation.warp_with(&p, &infl).cast();
+            closure.deformation.warp_surfel(s);
         }
         Ok(())
     }
@@ -156,7 +153,7 @@ impl LoopCloser for ShiftCloser {
             .map(|s| DeformationNode { translation_m: shift, ..DeformationNode::identity(s.position_m.cast(), s.t0) })
             .collect();
         let t_world_cam = Iso3::from_parts((input.t_world_cam.translation.vector + shift).into(), input.t_world_cam.rotation);
-        Ok(Some(LoopClosure { deformation: Deformation::new(nodes, 4, None), t_world_cam }))
+        Ok(Some(LoopClosure { deformation: Deformation::new(nodes, 4, Window::All), t_world_cam }))
     }
 }
 

@@ -40,7 +40,9 @@ fn the_map_learns_the_albedo_and_gives_it_back() {
     let mut p = Pipeline::build(&cfg, "test", &registry, &BuildEnv::new(ds.rig(), Some(data.clone()))).unwrap();
     let mut w = RunWriter::create(&out, &p.resolved_config().to_toml_string()).unwrap();
     let mut records = Vec::new();
-    let summary = run(&ds, &mut p, &mut w, &RunOptions { max_frames: None, write_map: true, eval_sim3: true }, |r| records.push(r.clone())).unwrap();
+    let summary =
+        run(&ds, &mut p, &mut w, &RunOptions { max_frames: None, write_map: true, eval_sim3: true, ..RunOptions::default() }, |r| records.push(r.clone()))
+            .unwrap();
 
     assert_eq!(records.len(), 24);
     for r in &records {

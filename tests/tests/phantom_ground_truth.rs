@@ -39,7 +39,7 @@ fn a_written_phantom_is_a_complete_dataset_with_its_ground_truth() {
     let mut p = Pipeline::build(&cfg, "test", &registry, &BuildEnv::new(ds.rig(), None)).unwrap();
     let out = tmp.path().join("out");
     let mut w = RunWriter::create(&out, "").unwrap();
-    let summary = run(&ds, &mut p, &mut w, &RunOptions { max_frames: None, write_map: true, eval_sim3: false }, |_| {}).unwrap();
+    let summary = run(&ds, &mut p, &mut w, &RunOptions { max_frames: None, write_map: true, eval_sim3: false, ..RunOptions::default() }, |_| {}).unwrap();
     let m = &summary.metrics;
     assert!(summary.ate_rmse_m.unwrap() < 1e-6, "{summary:?}");
     assert!(m["path_length_m"] > 0.005);

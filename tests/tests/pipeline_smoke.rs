@@ -21,7 +21,7 @@ fn run_on(dir: &std::path::Path, out: &std::path::Path, cfg: &Config) -> Result<
     let env = BuildEnv::new(ds.rig(), Some(dir.to_owned()));
     let mut p = Pipeline::build(cfg, "test", &registry, &env).unwrap();
     let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
-    run(&ds, &mut p, &mut w, &RunOptions { max_frames: cfg.input.max_frames, write_map: true, eval_sim3: false }, |_| {})
+    run(&ds, &mut p, &mut w, &RunOptions { max_frames: cfg.input.max_frames, write_map: true, eval_sim3: false, ..RunOptions::default() }, |_| {})
 }
 
 #[test]
@@ -44,6 +44,15 @@ fn oracle_pipeline_reproduces_ground_truth_and_writes_every_output() {
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     assert_eq!(csv.lines().count(), 13);
     assert!(csv.starts_with("frame,timestamp_s,status,ms_preprocess"));
+    // counters.jsonl: one object a frame with every stage counter, keyed `plugin.counter`.
+    let counters: Vec<serde_json::Value> =
+        std::fs::read_to_string(out.join("counters.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(counters.len(), 12);
+    for (i, c) in counters.iter().enumerate() {
+        assert_eq!(c["frame"], i);
+        assert!(c["sensor.valid_pixels"].as_f64().unwrap() > 0.0, "{c}");
+    }
+    assert_eq!(counters.iter().map(|c| c["test-points.added"].as_f64().unwrap()).sum::<f64>(), summary.counters_sum["test-points.added"]);
 
     // The map lies on the rendered plane z = 0.05 m and has what the fuser reported.
     let map = ply::read_surfels(&out.join("map.ply")).unwrap();

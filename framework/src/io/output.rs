@@ -1,5 +1,5 @@
-//! The output folder of a run: `config.toml` (written first), `trajectory.txt` and
-//! `frames.csv` (one line per frame, flushed at once, so an interrupted run keeps every
+//! The output folder of a run: `config.toml` (written first), `trajectory.txt`, `frames.csv`
+//! and `counters.jsonl` (one line per frame, flushed at once, so an interrupted run keeps every
 //! finished frame), then `map.ply` and `summary.json` at the end (also after a failure).
 
 use std::collections::BTreeMap;
@@ -91,11 +91,32 @@ impl Summary {
     }
 }
 
+/// The immediate effect of each loop closure (with `RunOptions::closure_report`).
+pub const CLOSURES_FILE: &str = "closures.csv";
+
+/// Per-frame counters of every stage, one JSON object a line.
+pub const COUNTERS_FILE: &str = "counters.jsonl";
+
+/// One line of `counters.jsonl`: `{"frame": N, "plugin.counter": value, ...}` (keys sorted; a
+/// non-finite value is written as `null`, as JSON has no NaN).
+pub fn counters_line(r: &FrameRecord) -> String {
+    let mut obj = serde_json::Map::new();
+    obj.insert("frame".into(), serde_json::Value::from(r.index));
+    for (plugin, rep) in &r.reports {
+        for (k, v) in &rep.counters {
+            obj.insert(format!("{plugin}.{k}"), serde_json::Number::from_f64(*v).map_or(serde_json::Value::Null, serde_json::Value::Number));
+        }
+    }
+    serde_json::Value::Object(obj).to_string()
+}
+
 /// Writes a run's output folder as the run goes.
 pub struct RunWriter {
     dir: PathBuf,
     trajectory: BufWriter<File>,
     frames: BufWriter<File>,
+    counters: BufWriter<File>,
+    closures: Option<BufWriter<File>>,
 }
 
 /// Header of `frames.csv`.
@@ -107,16 +128,20 @@ impl RunWriter {
         std::fs::create_dir_all(dir).map_err(|e| LoadError::io(dir, e))?;
         let cfg = dir.join("config.toml");
         std::fs::write(&cfg, resolved_config).map_err(|e| LoadError::io(&cfg, e))?;
-        let open = |name: &str, header: &str| -> Result<BufWriter<File>, LoadError> {
+        let open = |name: &str, header: Option<&str>| -> Result<BufWriter<File>, LoadError> {
             let p = dir.join(name);
             let mut f = BufWriter::new(File::create(&p).map_err(|e| LoadError::io(&p, e))?);
-            writeln!(f, "{header}").and_then(|()| f.flush()).map_err(|e| LoadError::io(&p, e))?;
+            if let Some(header) = header {
+                writeln!(f, "{header}").and_then(|()| f.flush()).map_err(|e| LoadError::io(&p, e))?;
+            }
             Ok(f)
         };
         Ok(Self {
             dir: dir.to_owned(),
-            trajectory: open("trajectory.txt", "# timestamp tx ty tz qx qy qz qw")?,
-            frames: open("frames.csv", FRAMES_CSV_HEADER)?,
+            trajectory: open("trajectory.txt", Some("# timestamp tx ty tz qx qy qz qw"))?,
+            frames: open("frames.csv", Some(FRAMES_CSV_HEADER))?,
+            counters: open(COUNTERS_FILE, None)?,
+            closures: None,
         })
     }
 
@@ -125,7 +150,7 @@ impl RunWriter {
         &self.dir
     }
 
-    /// Appends one frame to `trajectory.txt` and `frames.csv` and flushes both.
+    /// Appends one frame to `trajectory.txt`, `frames.csv` and `counters.jsonl` and flushes them.
     pub fn write_frame(&mut self, r: &FrameRecord) -> Result<(), LoadError> {
         let pose = StampedPose { timestamp_s: r.timestamp_s, t_world_cam: r.t_world_cam };
         let tp = self.dir.join("trajectory.txt");
@@ -153,7 +178,27 @@ impl RunWriter {
             r.depth_abs_rel.map(|a| format!("{a:.5}")).unwrap_or_default()
         );
         let fp = self.dir.join("frames.csv");
-        writeln!(self.frames, "{line}").and_then(|()| self.frames.flush()).map_err(|e| LoadError::io(&fp, e))
+        writeln!(self.frames, "{line}").and_then(|()| self.frames.flush()).map_err(|e| LoadError::io(&fp, e))?;
+        let cp = self.dir.join(COUNTERS_FILE);
+        writeln!(self.counters, "{}", counters_line(r)).and_then(|()| self.counters.flush()).map_err(|e| LoadError::io(&cp, e))
+    }
+
+    /// Appends one loop closure's scores just before and just after it to `closures.csv`
+    /// (created with its header on the first closure): ATE of the trajectory up to the closure
+    /// and the map's surface RMSE, millimetres.
+    pub fn write_closure(&mut self, frame: usize, before: &BTreeMap<String, f64>, after: &BTreeMap<String, f64>) -> Result<(), LoadError> {
+        let p = self.dir.join(CLOSURES_FILE);
+        let f = match &mut self.closures {
+            Some(f) => f,
+            None => {
+                let mut f = BufWriter::new(File::create(&p).map_err(|e| LoadError::io(&p, e))?);
+                writeln!(f, "frame,ate_before_mm,ate_after_mm,surface_rmse_before_mm,surface_rmse_after_mm").map_err(|e| LoadError::io(&p, e))?;
+                self.closures.insert(f)
+            }
+        };
+        let mm = |m: &BTreeMap<String, f64>, k: &str| m.get(k).map(|v| format!("{:.4}", v * 1e3)).unwrap_or_default();
+        let line = format!("{frame},{},{},{},{}", mm(before, "ate_rmse_m"), mm(after, "ate_rmse_m"), mm(before, "surface_rmse_m"), mm(after, "surface_rmse_m"));
+        writeln!(f, "{line}").and_then(|()| f.flush()).map_err(|e| LoadError::io(&p, e))
     }
 
     /// Replaces `trajectory.txt` with a corrected trajectory (after loop closures), keeping the

@@ -4,11 +4,13 @@
 
 use crate::error::PipelineError;
 use crate::eval::report::{EvalOptions, evaluate};
+use crate::geometry::StampedPose;
 use crate::io::{Dataset, RunWriter, Summary, ply};
+use crate::map::SurfelSet;
 use crate::pipeline::{FrameRecord, Pipeline};
 
 /// Options of a run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct RunOptions {
     /// Process at most this many frames.
     pub max_frames: Option<usize>,
@@ -16,6 +18,10 @@ pub struct RunOptions {
     pub write_map: bool,
     /// Headline figures aligned with scale (monocular runs).
     pub eval_sim3: bool,
+    /// With ground truth: score every loop closure the moment it is applied, the map's surface
+    /// error and the trajectory's ATE just before and just after it (`closures.csv`). Costs a
+    /// map snapshot per frame.
+    pub closure_report: bool,
 }
 
 /// The ground-truth surface of an input folder, when it has one.
@@ -32,13 +38,23 @@ pub fn run(
     let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let mut records = Vec::with_capacity(n);
     let mut failure: Option<PipelineError> = None;
+    let truth = load_truth(dataset)?;
+    let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
+    let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
     for i in 0..n {
+        let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
         let rec = match dataset.load(i) {
             Ok(frame) => pipeline.process(frame),
             Err(e) => Err(PipelineError::Load(e)),
         };
         match rec {
             Ok(rec) => {
+                if let (true, Some((map, traj)), Some(truth)) = (rec.loop_closed, &before, &truth) {
+                    let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?;
+                    let score = |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((map, truth)), &eval_opts);
+                    let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
+                    writer.write_closure(i, &b, &a)?;
+                }
                 writer.write_frame(&rec)?;
                 on_frame(&rec);
                 records.push(rec);
@@ -57,7 +73,7 @@ pub fn run(
         Ok(set) => Some(set),
         Err(e) => {
             if failure.is_none() {
-                failure = Some(PipelineError::Stage { frame: n, stage: pipeline.resolved_config().pipeline.fuser.clone(), source: e });
+                failure = Some(stage_error(pipeline, n, e));
             }
             None
         }
@@ -69,9 +85,6 @@ pub fn run(
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
     let gt = dataset.ground_truth();
     if !gt.is_empty() && !records.is_empty() {
-        let truth_file = dataset.dir().join(GT_SURFACE_FILE);
-        let truth = if truth_file.exists() { Some(ply::read_surfels(&truth_file)?) } else { None };
-        let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
         let surfaces = match (&map, &truth) {
             (Some(m), Some(t)) if !m.is_empty() => Some((m, t)),
             _ => None,
@@ -91,4 +104,14 @@ pub fn run(
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// The input's ground-truth surface, when it has one.
+fn load_truth(dataset: &Dataset) -> Result<Option<SurfelSet>, PipelineError> {
+    let truth_file = dataset.dir().join(GT_SURFACE_FILE);
+    Ok(if truth_file.exists() { Some(ply::read_surfels(&truth_file)?) } else { None })
+}
+
+fn stage_error(pipeline: &Pipeline, frame: usize, source: crate::error::StageError) -> PipelineError {
+    PipelineError::Stage { frame, stage: pipeline.resolved_config().pipeline.fuser.clone(), source }
 }

@@ -3,6 +3,7 @@
 //! accepted closure.
 
 use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::deformation::SurfelTime;
 use capsule_slam_framework::frame::{DepthSource, Masks};
 use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus};
 
@@ -15,11 +16,24 @@ use crate::track::icp_rgb::{IcpRgb, IcpRgbParams, MotionModel, RgbReference};
 pub struct Registration {
     /// Share of the active view's pixels that the inactive model covers too.
     pub overlap: f64,
+    /// The registered pose, when the registration ran (enough overlap).
+    pub t_est: Option<Iso3>,
     /// The corrected pose, when every check passed.
     pub accepted: Option<Iso3>,
     /// The check that failed, as a counter name (`inliers`, `residual`, ...; `None` when
     /// accepted or when there was too little overlap to try).
     pub rejected: Option<&'static str>,
+}
+
+/// Share of the active view's pixels that the inactive model covers too (0 for views of
+/// different sizes).
+pub fn overlap(active: &ModelView, inactive: &ModelView) -> f64 {
+    let active_px = active.valid_pixels();
+    if active_px == 0 || active.depth_m.size() != inactive.depth_m.size() {
+        return 0.0;
+    }
+    let both = active.depth_m.data().iter().zip(inactive.depth_m.data()).filter(|(a, i)| **a > 0.0 && **i > 0.0).count();
+    both as f64 / active_px as f64
 }
 
 /// Registers `active` (as the live frame) to `inactive` (as the model), both rendered at
@@ -32,10 +46,9 @@ pub fn register_models(
     ctx: &mut Context,
 ) -> Result<Registration, StageError> {
     let active_px = active.valid_pixels();
-    let both = active.depth_m.data().iter().zip(inactive.depth_m.data()).filter(|(a, i)| **a > 0.0 && **i > 0.0).count();
-    let overlap = if active_px == 0 { 0.0 } else { both as f64 / active_px as f64 };
+    let overlap = overlap(active, inactive);
     if overlap < p.min_overlap || active.depth_m.size() != inactive.depth_m.size() {
-        return Ok(Registration { overlap, accepted: None, rejected: None });
+        return Ok(Registration { overlap, t_est: None, accepted: None, rejected: None });
     }
     let frame = RgbdFrame {
         depth_source: DepthSource::Measured,
@@ -92,10 +105,12 @@ pub fn register_models(
         Some("unexplained")
     } else if correction < p.min_correction_m {
         Some("small_correction")
+    } else if before.is_none_or(|b| b < p.min_disagreement_m) {
+        Some("agreement")
     } else {
         None
     };
-    Ok(Registration { overlap, accepted: rejected.is_none().then_some(tr.t_world_cam), rejected })
+    Ok(Registration { overlap, t_est: Some(tr.t_world_cam), accepted: rejected.is_none().then_some(tr.t_world_cam), rejected })
 }
 
 /// Which model stays where it is at a closure.
@@ -110,53 +125,79 @@ pub enum Reference {
     Recent,
 }
 
-/// Surface constraints of an accepted closure, on a grid of `stride_px` over the pixels where
-/// both models have a surface. With `C = T_est T⁻¹` the world correction that carries the
-/// active model onto the inactive one: `Reference::Old` moves each active point `p = T v` to
-/// `C p` and (with `pins`) holds `C p` at the inactive surfel's time; `Reference::Recent` moves
-/// each inactive point `q` to `C⁻¹ q` and holds the active point `p`. Active points carry the
-/// current time `now` (ElasticFusion), inactive ones the creation time of the surfel they
-/// sample. (Active points at their surfels' creation times instead, which may be old for a
-/// surface still in view: phantom preset 5, sensor depth, `delta_t = 60`: ATE 0.51 → 1.91 mm.)
-#[allow(clippy::too_many_arguments, reason = "the closure's inputs, each needed once")]
-pub fn constraints(
-    active: &ModelView,
-    inactive: &ModelView,
-    t_world_cam: &Iso3,
-    t_est: &Iso3,
-    now: u32,
-    stride_px: usize,
-    pins: bool,
-    reference: Reference,
-    cam: &PinholeCamera,
-) -> Vec<Constraint> {
-    let correction = t_est * t_world_cam.inverse();
-    let undo = correction.inverse();
+/// One surface sample of a closure: a pixel where both models have a surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    /// The active surface point, world frame, metres.
+    pub active_m: nalgebra::Point3<f64>,
+    /// The inactive surface point on the same pixel ray, world frame, metres.
+    pub inactive_m: nalgebra::Point3<f64>,
+    /// Time of the inactive surfel there (its creation or its last sighting, by the closer's
+    /// [`SurfelTime`]).
+    pub inactive_time: u32,
+    /// Time of the active surfel there, likewise.
+    pub active_time: u32,
+}
+
+/// The samples of a closure on a grid of `stride_px` over the pixels where both models, rendered
+/// at `t_world_cam`, have a surface.
+pub fn samples(active: &ModelView, inactive: &ModelView, t_world_cam: &Iso3, stride_px: usize, time: SurfelTime, cam: &PinholeCamera) -> Vec<Sample> {
+    let (times, active_times) = match time {
+        SurfelTime::Created => (&inactive.t0, &active.t0),
+        SurfelTime::LastSeen => (&inactive.t, &active.t),
+    };
     let (w, h) = active.depth_m.size();
     let s = stride_px.max(1);
     let mut out = Vec::new();
     for y in (s / 2..h).step_by(s) {
         for x in (s / 2..w).step_by(s) {
             let (d, di) = (active.depth_m.at(x, y), inactive.depth_m.at(x, y));
-            if !(d > 0.0 && di > 0.0) {
-                continue;
+            if d > 0.0 && di > 0.0 {
+                out.push(Sample {
+                    active_m: t_world_cam * cam.unproject(x as f64, y as f64, f64::from(d)),
+                    inactive_m: t_world_cam * cam.unproject(x as f64, y as f64, f64::from(di)),
+                    inactive_time: times.at(x, y),
+                    active_time: active_times.at(x, y),
+                });
             }
-            let p = t_world_cam * cam.unproject(x as f64, y as f64, f64::from(d));
-            let then = inactive.t0.at(x, y);
-            match reference {
-                Reference::Old => {
-                    let target = correction * p;
-                    out.push(Constraint { source_m: p, target_m: target, time: now });
-                    if pins {
-                        out.push(Constraint { source_m: target, target_m: target, time: then });
-                    }
+        }
+    }
+    out
+}
+
+/// The median time of the inactive surface the samples see (the loop's "then").
+pub fn median_t0(samples: &[Sample]) -> Option<u32> {
+    let mut t: Vec<u32> = samples.iter().map(|s| s.inactive_time).collect();
+    t.sort_unstable();
+    t.get(t.len() / 2).copied()
+}
+
+/// Surface constraints of an accepted closure from its samples. `correction(t)` is the world
+/// correction that carries the active model onto inactive surface of time t (for a
+/// registration, one `T_est T⁻¹` whatever t). `Reference::Old` moves each active
+/// point `p` to `C p` and (with `pins`) holds `C p` at the inactive surfel's time;
+/// `Reference::Recent` moves each inactive point `q` to `C⁻¹ q` and holds the active point `p`.
+/// Active points carry the current time `now` (ElasticFusion) or, with `None`, the time of the
+/// active surfel they sample; inactive ones the time of the surfel they sample. (Active points at their surfels' creation times instead, which may
+/// be old for a surface still in view: phantom preset 5, sensor depth, `delta_t = 60`: ATE 0.51
+/// → 1.91 mm.)
+pub fn constraints(samples: &[Sample], correction: impl Fn(u32) -> Iso3, now: Option<u32>, pins: bool, reference: Reference) -> Vec<Constraint> {
+    let mut out = Vec::new();
+    for s in samples {
+        let c = correction(s.inactive_time);
+        let now = now.unwrap_or(s.active_time);
+        match reference {
+            Reference::Old => {
+                let target = c * s.active_m;
+                out.push(Constraint { source_m: s.active_m, target_m: target, time: now });
+                if pins {
+                    out.push(Constraint { source_m: target, target_m: target, time: s.inactive_time });
                 }
-                Reference::Recent => {
-                    let q = t_world_cam * cam.unproject(x as f64, y as f64, f64::from(di));
-                    out.push(Constraint { source_m: q, target_m: undo * q, time: then });
-                    if pins {
-                        out.push(Constraint { source_m: p, target_m: p, time: now });
-                    }
+            }
+            Reference::Recent => {
+                out.push(Constraint { source_m: s.inactive_m, target_m: c.inverse() * s.inactive_m, time: s.inactive_time });
+                if pins {
+                    out.push(Constraint { source_m: s.active_m, target_m: s.active_m, time: now });
                 }
             }
         }

@@ -71,6 +71,8 @@ pub struct Graph {
     pub deformation: Deformation,
     /// Neighbours of each node (directed: j → n).
     pub neighbours: Vec<Vec<usize>>,
+    /// Nodes held at the identity (not optimised).
+    pub fixed: Vec<bool>,
     constraints: Vec<(Constraint, Vec<(usize, f64)>)>,
 }
 
@@ -97,10 +99,12 @@ pub fn time_neighbours(i: usize, n: usize, count: usize) -> Vec<usize> {
 }
 
 impl Graph {
-    /// A graph of undeformed nodes with `connectivity` neighbours each, `k` influencing nodes
-    /// per point among the `window` nearest in time.
-    pub fn new(nodes: Vec<DeformationNode>, k: usize, window: Option<usize>, connectivity: usize, edges: Edges) -> Self {
-        let deformation = Deformation::new(nodes.into_iter().map(|n| DeformationNode::identity(n.position_m, n.t0)).collect(), k, window);
+    /// A graph of the nodes of `deformation` (reset to undeformed) with `connectivity`
+    /// neighbours each; points find their influencing nodes by the deformation's rules.
+    pub fn new(mut deformation: Deformation, connectivity: usize, edges: Edges) -> Self {
+        for n in &mut deformation.nodes {
+            *n = DeformationNode::identity(n.position_m, n.time);
+        }
         let n = deformation.nodes.len();
         let neighbours = (0..n)
             .map(|i| match edges {
@@ -108,7 +112,7 @@ impl Graph {
                 Edges::SpaceInWindow => {
                     let g = deformation.nodes[i].position_m;
                     let mut c: Vec<(f64, usize)> = deformation
-                        .candidates(deformation.nodes[i].t0)
+                        .candidates(deformation.nodes[i].time)
                         .filter(|&j| j != i)
                         .map(|j| ((deformation.nodes[j].position_m - g).norm(), j))
                         .collect();
@@ -117,7 +121,17 @@ impl Graph {
                 }
             })
             .collect();
-        Self { deformation, neighbours, constraints: Vec::new() }
+        Self { deformation, neighbours, fixed: vec![false; n], constraints: Vec::new() }
+    }
+
+    /// Holds node `i` at the identity: it moves the points it influences not at all and is no
+    /// unknown of the optimisation (ElasticFusion freezes the nodes older than its last local
+    /// closure).
+    pub fn fix(&mut self, i: usize) {
+        if let Some(f) = self.fixed.get_mut(i) {
+            *f = true;
+            self.deformation.nodes[i] = DeformationNode::identity(self.deformation.nodes[i].position_m, self.deformation.nodes[i].time);
+        }
     }
 
     /// Adds a constraint (its influencing nodes are fixed now, from the undeformed graph).
@@ -149,12 +163,17 @@ impl Graph {
     }
 
     /// Calls `f(r, jacobian row)` for every weighted residual; the row lists (unknown index,
-    /// ∂r/∂x) with unknown `12 j + m`: m < 9 the entries of R_j column-major, m ≥ 9 t_j.
+    /// ∂r/∂x) with unknown `12 j + m`: m < 9 the entries of R_j column-major, m ≥ 9 t_j. Fixed
+    /// nodes have no E_rot rows and no entries.
     pub fn visit(&self, w: &GraphWeights, mut f: impl FnMut(f64, &[(usize, f64)])) {
         let nodes = &self.deformation.nodes;
+        let fixed = &self.fixed;
         let (s_rot, s_reg, s_con) = (w.rot.sqrt(), w.reg.sqrt() / w.length_unit_m, w.con.sqrt() / w.length_unit_m);
         let mut row: Vec<(usize, f64)> = Vec::with_capacity(64);
         for (j, node) in nodes.iter().enumerate() {
+            if fixed[j] {
+                continue;
+            }
             let c = [node.rotation.column(0).into_owned(), node.rotation.column(1).into_owned(), node.rotation.column(2).into_owned()];
             let base = UNKNOWNS * j;
             for (a, b) in [(0, 1), (0, 2), (1, 2)] {
@@ -175,16 +194,23 @@ impl Graph {
         }
         for (j, node) in nodes.iter().enumerate() {
             for &n in &self.neighbours[j] {
+                if fixed[j] && fixed[n] {
+                    continue;
+                }
                 let other = &nodes[n];
                 let d = other.position_m - node.position_m;
                 let e = node.rotation * d + node.position_m.coords + node.translation_m - (other.position_m.coords + other.translation_m);
                 for axis in 0..3 {
                     row.clear();
-                    for col in 0..3 {
-                        row.push((UNKNOWNS * j + 3 * col + axis, s_reg * d[col]));
+                    if !fixed[j] {
+                        for col in 0..3 {
+                            row.push((UNKNOWNS * j + 3 * col + axis, s_reg * d[col]));
+                        }
+                        row.push((UNKNOWNS * j + 9 + axis, s_reg));
                     }
-                    row.push((UNKNOWNS * j + 9 + axis, s_reg));
-                    row.push((UNKNOWNS * n + 9 + axis, -s_reg));
+                    if !fixed[n] {
+                        row.push((UNKNOWNS * n + 9 + axis, -s_reg));
+                    }
                     f(s_reg * e[axis], &row);
                 }
             }
@@ -193,7 +219,7 @@ impl Graph {
             let e = self.deformation.warp_with(&c.source_m, infl) - c.target_m;
             for axis in 0..3 {
                 row.clear();
-                for &(i, wi) in infl {
+                for &(i, wi) in infl.iter().filter(|(i, _)| !fixed[*i]) {
                     let v = c.source_m - nodes[i].position_m;
                     for col in 0..3 {
                         row.push((UNKNOWNS * i + 3 * col + axis, s_con * wi * v[col]));

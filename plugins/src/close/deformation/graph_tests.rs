@@ -1,5 +1,5 @@
 use capsule_slam_framework::Iso3;
-use capsule_slam_framework::deformation::DeformationNode;
+use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
 use super::graph::{Constraint, Edges, Graph, GraphWeights, UNKNOWNS, time_neighbours};
@@ -24,7 +24,7 @@ fn bend(p: &Point3<f64>) -> Point3<f64> {
 
 fn graph_on_sheet(node_step_m: f64, edges: Edges) -> Graph {
     let nodes = sheet(node_step_m).into_iter().map(|(p, t)| DeformationNode::identity(p, t)).collect();
-    Graph::new(nodes, 4, Some(20), 4, edges)
+    Graph::new(Deformation::new(nodes, 4, Window::Nodes(20)), 4, edges)
 }
 
 #[test]
@@ -122,4 +122,25 @@ fn a_smooth_bend_is_recovered_from_sparse_constraints() {
     let warped = d.warp_pose(&pose, 30);
     let expected = bend(&Point3::from(pose.translation.vector));
     assert!((warped.translation.vector - expected.coords).norm() < 0.5e-3, "{warped:?}");
+}
+
+#[test]
+fn fixed_nodes_stay_and_the_free_ones_take_the_bend() {
+    // The sheet's first columns (times 0..=2) are held; a 1 mm lift is asked of the last column.
+    let mut g = graph_on_sheet(0.005, Edges::SpaceInWindow);
+    let held: Vec<usize> = (0..g.deformation.nodes.len()).filter(|&i| g.deformation.nodes[i].time <= 2).collect();
+    for &i in &held {
+        g.fix(i);
+    }
+    for (p, t) in sheet(0.005).into_iter().filter(|(p, _)| p.x > 0.035) {
+        g.constrain(Constraint { source_m: p, target_m: p + Vector3::new(0.0, 0.0, 0.001), time: t });
+    }
+    let s = g.optimise(&GraphWeights::default()).unwrap();
+    assert!(s.energy_after < 0.05 * s.energy_before, "{s:?}");
+    for &i in &held {
+        let n = &g.deformation.nodes[i];
+        assert_eq!((n.rotation, n.translation_m), (Matrix3::identity(), Vector3::zeros()), "node {i} moved");
+    }
+    let lifted = g.deformation.warp_point(&Point3::new(0.04, 0.02, 0.03), 8);
+    assert!((lifted.z - 0.031).abs() < 2e-4, "the constrained edge rises by 1 mm: {lifted}");
 }

@@ -188,3 +188,48 @@ fn an_aligned_revisit_needs_no_closure() {
     let (closure, report) = close(&sc, &new, DeformationParams::default());
     assert!(closure.is_none(), "{report:?}");
 }
+
+#[test]
+fn models_that_already_agree_are_left_alone() {
+    // A 0.1 mm shift: the registration finds it, but the models disagree by less than the
+    // disagreement threshold, so bending the map is not worth it.
+    let sc = scene();
+    let new = moved(&sc.old, &Iso3::translation(0.0, 0.0, 0.0001));
+    let p = DeformationParams { min_correction_m: 0.0, max_residual_ratio: 1.0e6, min_disagreement_m: 0.00025, ..DeformationParams::default() };
+    let (closure, report) = close(&sc, &new, p.clone());
+    assert!(closure.is_none(), "{report:?}");
+    assert_eq!(report.counters.get("rejected_agreement"), Some(&1.0), "{report:?}");
+    let (closure, report) = close(&sc, &new, DeformationParams { min_disagreement_m: 0.0, ..p });
+    assert!(closure.is_some(), "without the threshold it closes: {report:?}");
+}
+
+#[test]
+fn a_loop_is_confirmed_by_consecutive_agreeing_registrations() {
+    let sc = scene();
+    let d = drift(&sc);
+    let new = moved(&sc.old, &d);
+    let cam = &sc.phantom.camera;
+    let rig = Rig::Mono(cam.clone());
+    let map = Fixed(SurfelSet::new([sc.old.clone(), new.clone()].concat()));
+    let active = predict(&new, |_| true, cam, &sc.pose, 0.001, 0.2);
+    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, 0.001, 0.2);
+    let base = sc.phantom.render(150).to_rgbd(cam);
+    let mut closer = DeformationCloser::new(DeformationParams { consistent_frames: 2, ..DeformationParams::default() });
+    let mut at = |index: usize, active: &ModelView| {
+        let frame = RgbdFrame { index, masks: Masks::new(), ..base.clone() };
+        let mut report = StageReport::default();
+        let input = LoopInput { frame: &frame, t_world_cam: &sc.pose, active, inactive: &inactive };
+        let out = closer.close(&input, &map, &mut Context::new(index, &rig, None, &mut report)).unwrap();
+        (out, report)
+    };
+    let t = now(&sc, &new) as usize;
+    let (first, report) = at(t, &active);
+    assert!(first.is_none(), "one registration is not enough: {report:?}");
+    assert_eq!(report.counters.get("rejected_unconfirmed"), Some(&1.0));
+    let (second, report) = at(t + 1, &active);
+    assert!(second.is_some(), "the next frame confirms it: {report:?}");
+    assert!(report.counters["correction_change_mm"] < 0.01, "{report:?}");
+    // A gap of a frame breaks the streak.
+    let (third, _) = at(t + 3, &active);
+    assert!(third.is_none(), "a new streak starts after a gap");
+}

@@ -220,12 +220,7 @@ impl Fuser for SurfelCpu {
 
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {
         let d = &closure.deformation;
-        self.surfels.par_iter_mut().for_each(|s| {
-            let p = s.position_m.cast::<f64>();
-            let infl = d.influences(&p, s.t0);
-            s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
-            s.position_m = d.warp_with(&p, &infl).cast();
-        });
+        self.surfels.par_iter_mut().for_each(|s| d.warp_surfel(s));
         // Reactivate the stable inactive surfels seen from the corrected pose.
         let now = (ctx.frame_index as u32).max(self.now);
         let cam = ctx.rig.camera();

@@ -136,6 +136,7 @@ pub fn predict(
         view.colour.set_pixel(x, y, s.colour);
         *view.confidence.at_mut(x, y) = s.confidence;
         *view.t0.at_mut(x, y) = s.t0;
+        *view.t.at_mut(x, y) = s.t;
         *view.albedo.at_mut(x, y) = s.albedo;
     }
     view
