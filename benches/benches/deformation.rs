@@ -1,8 +1,10 @@
 //! The deformation graph (issue 7): the Gauss-Newton solve against the node count (64 to 4096
 //! nodes on a curved sheet with one surface constraint and one pin per node, as a closure
-//! gives), one factorisation per iteration.
+//! gives), one factorisation per iteration; and warping a map of 100 000 surfels by a solved
+//! 1024-node graph whose older half is frozen (the fuser's share of a closure).
 
-use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
+use capsule_slam_framework::Surfel;
+use capsule_slam_framework::deformation::{Deformation, DeformationNode, SurfelTime, Window};
 use capsule_slam_plugins::close::deformation::graph::{Constraint, Edges, Graph, GraphWeights};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
@@ -39,5 +41,46 @@ fn solve(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, solve);
+fn warp_map(c: &mut Criterion) {
+    let mut g = graph(1024);
+    let half = g.deformation.nodes.iter().map(|n| n.time).max().unwrap_or(0) / 2;
+    for i in 0..g.deformation.nodes.len() {
+        if g.deformation.nodes[i].time < half {
+            g.fix(i);
+        }
+    }
+    g.optimise(&GraphWeights::default()).unwrap_or_else(|e| panic!("{e}"));
+    let d = Deformation { window: Window::Frames(2), ..g.deformation.clone() }.timed_by(SurfelTime::LastSeen);
+    let side = 32u32;
+    let map: Vec<Surfel> = (0..100_000u32)
+        .map(|i| {
+            let (x, y) = ((i % 316) as f32 / 316.0 * 0.04, (i / 316) as f32 / 316.0 * 0.04);
+            let t = (x / 0.04 * side as f32) as u32;
+            Surfel {
+                position_m: nalgebra::Point3::new(x, y, 0.03),
+                normal: Vector3::<f32>::z(),
+                colour: [0; 3],
+                confidence: 10.0,
+                radius_m: 2e-4,
+                t0: t,
+                t,
+                albedo: 0.0,
+            }
+        })
+        .collect();
+    c.bench_function("deformation-warp-map/100000", |b| {
+        b.iter_batched(
+            || map.clone(),
+            |mut m| {
+                use rayon::prelude::*;
+                let w = d.warper();
+                m.par_iter_mut().for_each(|s| w.warp_surfel(s));
+                m
+            },
+            criterion::BatchSize::LargeInput,
+        )
+    });
+}
+
+criterion_group!(benches, solve, warp_map);
 criterion_main!(benches);

@@ -78,6 +78,22 @@ impl SurfelTime {
     }
 }
 
+/// How a camera pose follows a deformation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PoseWarp {
+    /// Its centre warped as a point, its rotation by the orthonormalised blend of the nodes'
+    /// R (ElasticFusion). Inside an organ the centre is in the lumen, centimetres from the
+    /// nodes on the wall, so their affine transforms are extrapolated over a long lever arm.
+    Position,
+    /// With what it looks at: a 3 × 3 grid of points at this distance in front of it (rays
+    /// through ±26.6° in x and y) is warped and the rigid motion that fits them best (Kabsch)
+    /// moves the pose.
+    View {
+        /// Distance of the points from the camera, metres.
+        depth_m: f64,
+    },
+}
+
 /// A deformation graph with optimised node transforms.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Deformation {
@@ -89,6 +105,8 @@ pub struct Deformation {
     pub window: Window,
     /// Which surfel time the nodes carry and a surfel is warped by ([`Deformation::warp_surfel`]).
     pub surfel_time: SurfelTime,
+    /// How camera poses follow ([`Deformation::warp_pose`]).
+    pub pose_warp: PoseWarp,
 }
 
 impl Deformation {
@@ -96,7 +114,12 @@ impl Deformation {
     /// the `window`, surfels timed by creation (ElasticFusion; see [`Deformation::timed_by`]).
     pub fn new(mut nodes: Vec<DeformationNode>, k: usize, window: Window) -> Self {
         nodes.sort_by_key(|n| n.time);
-        Self { nodes, k, window, surfel_time: SurfelTime::Created }
+        Self { nodes, k, window, surfel_time: SurfelTime::Created, pose_warp: PoseWarp::Position }
+    }
+
+    /// The same deformation with poses warped by `pose_warp`.
+    pub fn poses_by(self, pose_warp: PoseWarp) -> Self {
+        Self { pose_warp, ..self }
     }
 
     /// The same deformation with surfels timed by `surfel_time`.
@@ -133,9 +156,20 @@ impl Deformation {
     /// the distance to the (k+1)-th nearest candidate. With k or fewer candidates, d_max is
     /// 1.01 × the farthest one's distance.
     pub fn influences(&self, p: &Point3<f64>, time: u32) -> Vec<(usize, f64)> {
-        let mut d: Vec<(usize, f64)> = self.candidates(time).map(|i| (i, (p - self.nodes[i].position_m).norm())).collect();
-        d.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
         let k = self.k.max(1);
+        // The k + 1 nearest candidates by squared distance (then index), kept sorted in a short
+        // list: one pass over the window, no sort of it.
+        let mut d: Vec<(usize, f64)> = Vec::with_capacity(k + 2);
+        for i in self.candidates(time) {
+            let di = (p - self.nodes[i].position_m).norm_squared();
+            if d.len() > k && di >= d[k].1 {
+                continue;
+            }
+            let at = d.partition_point(|x| x.1 < di || (x.1 == di && x.0 < i));
+            d.insert(at, (i, di));
+            d.truncate(k + 1);
+        }
+        d.iter_mut().for_each(|x| x.1 = x.1.sqrt());
         let d_max = match d.get(k) {
             Some(&(_, dk)) => dk,
             None => d.last().map_or(0.0, |&(_, dl)| 1.01 * dl),
@@ -162,6 +196,19 @@ impl Deformation {
     pub fn warp_normal(&self, p: &Point3<f64>, n: &Vector3<f64>, time: u32) -> Vector3<f64> {
         let infl = self.influences(p, time);
         self.warp_normal_with(n, &infl)
+    }
+
+    /// A warper for many surfels: it knows which windows hold only undeformed nodes (the
+    /// frozen old map) and leaves their surfels as they are without searching the nodes.
+    pub fn warper(&self) -> Warper<'_> {
+        let mut moving_before = Vec::with_capacity(self.nodes.len() + 1);
+        let mut count = 0u32;
+        moving_before.push(0);
+        for n in &self.nodes {
+            count += u32::from(n.rotation != Matrix3::identity() || n.translation_m != Vector3::zeros());
+            moving_before.push(count);
+        }
+        Warper { deformation: self, moving_before }
     }
 
     /// Warps a surfel's position and normal in place (timed by [`Deformation::surfel_time`]).
@@ -196,9 +243,24 @@ impl Deformation {
         if len > 1e-12 { out / len } else { *n }
     }
 
-    /// Warps a camera pose of frame `time`: its position as a point, its rotation by the
-    /// SVD-orthonormalised blend `Σ w_n R_n` (ElasticFusion's pose update).
+    /// Warps a camera pose of frame `time` by [`Deformation::pose_warp`].
     pub fn warp_pose(&self, t_world_cam: &Iso3, time: u32) -> Iso3 {
+        let PoseWarp::View { depth_m } = self.pose_warp else { return self.warp_pose_position(t_world_cam, time) };
+        let grid = [-0.5, 0.0, 0.5];
+        let seen: Vec<Point3<f64>> =
+            grid.iter().flat_map(|&y| grid.iter().map(move |&x| t_world_cam * Point3::new(x * depth_m, y * depth_m, depth_m))).collect();
+        let warped: Vec<Point3<f64>> = seen.iter().map(|p| self.warp_point(p, time)).collect();
+        let n = seen.len() as f64;
+        let (ps, qs) = (seen.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n, warped.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n);
+        let cross: Matrix3<f64> = seen.iter().zip(&warped).map(|(p, q)| (q.coords - qs) * (p.coords - ps).transpose()).sum();
+        let r = orthonormalise(&cross);
+        let centre = r * (t_world_cam.translation.vector - ps) + qs;
+        Iso3::from_parts(centre.into(), UnitQuaternion::from_rotation_matrix(&(r * t_world_cam.rotation.to_rotation_matrix())))
+    }
+
+    /// ElasticFusion's pose update: the centre warped as a point, the rotation by the
+    /// SVD-orthonormalised blend `Σ w_n R_n`.
+    fn warp_pose_position(&self, t_world_cam: &Iso3, time: u32) -> Iso3 {
         let p = Point3::from(t_world_cam.translation.vector);
         let infl = self.influences(&p, time);
         if infl.is_empty() {
@@ -207,6 +269,25 @@ impl Deformation {
         let blend: Matrix3<f64> = infl.iter().map(|&(i, w)| w * self.nodes[i].rotation).sum();
         let r = orthonormalise(&blend) * t_world_cam.rotation.to_rotation_matrix();
         Iso3::from_parts(self.warp_with(&p, &infl).coords.into(), UnitQuaternion::from_rotation_matrix(&r))
+    }
+}
+
+/// [`Deformation::warp_surfel`] for a whole map ([`Deformation::warper`]).
+pub struct Warper<'a> {
+    deformation: &'a Deformation,
+    /// `moving_before[i]`: nodes before node i that are not the identity.
+    moving_before: Vec<u32>,
+}
+
+impl Warper<'_> {
+    /// Warps a surfel's position and normal in place; the same result as
+    /// [`Deformation::warp_surfel`].
+    pub fn warp_surfel(&self, s: &mut Surfel) {
+        let r = self.deformation.candidates(self.deformation.surfel_time.of(s));
+        if self.moving_before[r.end] == self.moving_before[r.start] {
+            return;
+        }
+        self.deformation.warp_surfel(s);
     }
 }
 
@@ -276,9 +357,11 @@ mod tests {
         let n = Vector3::new(0.0, 0.6, 0.8);
         assert!((d.warp_normal(&p, &n, 0) - rot * n).norm() < 1e-12);
         let pose = Iso3::translation(0.01, 0.01, -0.02);
-        let warped = d.warp_pose(&pose, 0);
-        assert!((warped.rotation.to_rotation_matrix().matrix() - rot.matrix()).norm() < 1e-9);
-        assert!((warped.translation.vector - (rot * pose.translation.vector + shift)).norm() < 1e-12);
+        for d in [d.clone(), d.poses_by(PoseWarp::View { depth_m: 0.02 })] {
+            let warped = d.warp_pose(&pose, 0);
+            assert!((warped.rotation.to_rotation_matrix().matrix() - rot.matrix()).norm() < 1e-9);
+            assert!((warped.translation.vector - (rot * pose.translation.vector + shift)).norm() < 1e-12);
+        }
     }
 
     #[test]
@@ -335,8 +418,15 @@ mod tests {
         let mut created = s;
         d.clone().warp_surfel(&mut created);
         assert_eq!(created.position_m, s.position_m, "timed by creation it stays");
+        let mut skipped = s;
+        d.warper().warp_surfel(&mut skipped);
+        assert_eq!(skipped, created, "the warper skips the window of undeformed old nodes");
         let mut seen = s;
-        d.timed_by(SurfelTime::LastSeen).warp_surfel(&mut seen);
+        let d = d.timed_by(SurfelTime::LastSeen);
+        let mut fast = s;
+        d.warper().warp_surfel(&mut fast);
+        d.warp_surfel(&mut seen);
+        assert_eq!(fast, seen);
         assert!((seen.position_m.z - 0.002).abs() < 1e-7, "timed by last sighting it moves: {}", seen.position_m);
         assert!((seen.normal.norm() - 1.0).abs() < 1e-6);
     }

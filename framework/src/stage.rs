@@ -151,6 +151,12 @@ pub trait Fuser: Send {
     /// An exported copy of the whole map in canonical order (for output and tests; may be
     /// expensive).
     fn snapshot(&self) -> Result<SurfelSet, StageError>;
+    /// The time window δt, frames: a surfel last seen more than δt frames ago is inactive
+    /// (`None`: this fuser keeps every surfel active). A loop closer uses it to tell the two
+    /// models apart in a snapshot.
+    fn active_window(&self) -> Option<u32> {
+        None
+    }
 }
 
 /// What a loop closer gets each frame.

@@ -109,6 +109,10 @@ impl Fuser for PointFuser {
     fn snapshot(&self) -> Result<SurfelSet, StageError> {
         Ok(SurfelSet::new(self.surfels.clone()))
     }
+
+    fn active_window(&self) -> Option<u32> {
+        Some(self.params.delta_t)
+    }
 }
 
 capsule_slam_framework::plugin_params! {

@@ -26,9 +26,8 @@ fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Sum
     let mut p = Pipeline::build(&cfg, "test", &registry, &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
     let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
     let mut records = Vec::new();
-    let summary =
-        run(&ds, &mut p, &mut w, &RunOptions { max_frames: None, write_map: true, eval_sim3: false, ..RunOptions::default() }, |r| records.push(r.clone()))
-            .unwrap();
+    let opts = RunOptions { max_frames: None, write_map: true, eval_sim3: false, closure_report: true };
+    let summary = run(&ds, &mut p, &mut w, &opts, |r| records.push(r.clone())).unwrap();
     (summary, records)
 }
 
@@ -60,6 +59,17 @@ fn closures_bend_the_map_and_the_trajectory_and_nothing_before_them() {
     // The deformed map keeps unit normals.
     let map = ply::read_surfels(&on_dir.join("map.ply")).unwrap();
     assert!(map.surfels.iter().all(|s| (s.normal.norm() - 1.0).abs() < 1e-4));
+    // The closure report scores each closure against the truth as it happens: one line each,
+    // with the figures before and after.
+    let report = std::fs::read_to_string(on_dir.join("closures.csv")).unwrap();
+    let lines: Vec<&str> = report.lines().skip(1).collect();
+    assert_eq!(lines.len(), on.loop_closures);
+    for (line, rec) in lines.iter().zip(on_records.iter().filter(|r| r.loop_closed)) {
+        let f: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+        assert_eq!(f[0] as usize, rec.index);
+        assert!(f[1..].iter().all(|v| v.is_finite() && *v > 0.0), "{line}");
+    }
+    assert!(!tmp.path().join("off").join("closures.csv").exists(), "no closure, no report");
     // Both runs are scored against the same truth.
     assert!(on.ate_rmse_m.unwrap().is_finite() && off.ate_rmse_m.unwrap().is_finite());
 }

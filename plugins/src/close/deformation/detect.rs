@@ -135,16 +135,14 @@ pub struct Sample {
     /// Time of the inactive surfel there (its creation or its last sighting, by the closer's
     /// [`SurfelTime`]).
     pub inactive_time: u32,
-    /// Time of the active surfel there, likewise.
-    pub active_time: u32,
 }
 
 /// The samples of a closure on a grid of `stride_px` over the pixels where both models, rendered
 /// at `t_world_cam`, have a surface.
 pub fn samples(active: &ModelView, inactive: &ModelView, t_world_cam: &Iso3, stride_px: usize, time: SurfelTime, cam: &PinholeCamera) -> Vec<Sample> {
-    let (times, active_times) = match time {
-        SurfelTime::Created => (&inactive.t0, &active.t0),
-        SurfelTime::LastSeen => (&inactive.t, &active.t),
+    let times = match time {
+        SurfelTime::Created => &inactive.t0,
+        SurfelTime::LastSeen => &inactive.t,
     };
     let (w, h) = active.depth_m.size();
     let s = stride_px.max(1);
@@ -157,7 +155,6 @@ pub fn samples(active: &ModelView, inactive: &ModelView, t_world_cam: &Iso3, str
                     active_m: t_world_cam * cam.unproject(x as f64, y as f64, f64::from(d)),
                     inactive_m: t_world_cam * cam.unproject(x as f64, y as f64, f64::from(di)),
                     inactive_time: times.at(x, y),
-                    active_time: active_times.at(x, y),
                 });
             }
         }
@@ -177,15 +174,14 @@ pub fn median_t0(samples: &[Sample]) -> Option<u32> {
 /// registration, one `T_est T⁻¹` whatever t). `Reference::Old` moves each active
 /// point `p` to `C p` and (with `pins`) holds `C p` at the inactive surfel's time;
 /// `Reference::Recent` moves each inactive point `q` to `C⁻¹ q` and holds the active point `p`.
-/// Active points carry the current time `now` (ElasticFusion) or, with `None`, the time of the
-/// active surfel they sample; inactive ones the time of the surfel they sample. (Active points at their surfels' creation times instead, which may
+/// Active points carry the current time `now` (ElasticFusion), inactive ones the time of the
+/// surfel they sample. (Active points at their surfels' creation times instead, which may
 /// be old for a surface still in view: phantom preset 5, sensor depth, `delta_t = 60`: ATE 0.51
 /// → 1.91 mm.)
-pub fn constraints(samples: &[Sample], correction: impl Fn(u32) -> Iso3, now: Option<u32>, pins: bool, reference: Reference) -> Vec<Constraint> {
+pub fn constraints(samples: &[Sample], correction: impl Fn(u32) -> Iso3, now: u32, pins: bool, reference: Reference) -> Vec<Constraint> {
     let mut out = Vec::new();
     for s in samples {
         let c = correction(s.inactive_time);
-        let now = now.unwrap_or(s.active_time);
         match reference {
             Reference::Old => {
                 let target = c * s.active_m;

@@ -220,7 +220,10 @@ impl Fuser for SurfelCpu {
 
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {
         let d = &closure.deformation;
-        self.surfels.par_iter_mut().for_each(|s| d.warp_surfel(s));
+        let clock = std::time::Instant::now();
+        let warper = d.warper();
+        self.surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         // Reactivate the stable inactive surfels seen from the corrected pose.
         let now = (ctx.frame_index as u32).max(self.now);
         let cam = ctx.rig.camera();
@@ -252,6 +255,10 @@ impl Fuser for SurfelCpu {
 
     fn snapshot(&self) -> Result<SurfelSet, StageError> {
         Ok(SurfelSet::new(self.surfels.clone()))
+    }
+
+    fn active_window(&self) -> Option<u32> {
+        Some(self.params.delta_t)
     }
 }
 
