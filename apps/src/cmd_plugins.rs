@@ -5,7 +5,10 @@ pub fn run() -> anyhow::Result<()> {
     for e in registry.iter() {
         println!("{} ({})", e.name, e.kind.as_str());
         println!("    {}", e.summary);
-        let params = (e.params)();
+        if let Some(lib) = e.library() {
+            println!("    from the library {}", lib.display());
+        }
+        let params = e.param_docs();
         if params.is_empty() {
             println!("    no parameters");
         }

@@ -20,9 +20,17 @@ use clap::{Parser, Subcommand};
 #[derive(Parser, Debug)]
 #[command(name = "capsule-slam", version, about)]
 struct Cli {
+    /// Load the plugins of a shared library built against capsule-slam's C ABI (repeatable;
+    /// e.g. target/release/libcapsule_slam_dylib_example.so). Its plugins are then named in
+    /// the config like linked ones.
+    #[arg(long = "plugin-lib", value_name = "PATH", global = true)]
+    plugin_libs: Vec<std::path::PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
+
+/// The libraries of `--plugin-lib`, set once in `main`.
+static PLUGIN_LIBS: std::sync::OnceLock<Vec<std::path::PathBuf>> = std::sync::OnceLock::new();
 
 #[derive(Subcommand, Debug)]
 enum Command {
@@ -54,6 +62,7 @@ enum Command {
 fn main() -> std::process::ExitCode {
     capsule_slam_plugins::link();
     let cli = Cli::parse();
+    let _ = PLUGIN_LIBS.set(cli.plugin_libs.clone());
     let result = match cli.command {
         Command::Run(a) => cmd_run::run(&a),
         Command::Plugins => cmd_plugins::run(),
@@ -76,7 +85,12 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// The registry of every linked plugin.
+/// The registry of every linked plugin and of the `--plugin-lib` libraries.
 fn registry() -> anyhow::Result<capsule_slam_framework::Registry> {
-    Ok(capsule_slam_framework::Registry::from_inventory()?)
+    use anyhow::Context as _;
+    let mut registry = capsule_slam_framework::Registry::from_inventory()?;
+    for lib in PLUGIN_LIBS.get().into_iter().flatten() {
+        registry.load_library(lib).with_context(|| format!("--plugin-lib {}", lib.display()))?;
+    }
+    Ok(registry)
 }

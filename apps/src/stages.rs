@@ -8,7 +8,7 @@ use capsule_slam_framework::registry::{BuildEnv, Registry, Stage};
 /// Builds plugin `name` from its resolved parameter table (`validate`'s output).
 pub fn build(registry: &Registry, resolved: &std::collections::BTreeMap<String, toml::Table>, env: &BuildEnv, name: &str) -> anyhow::Result<Stage> {
     let entry = registry.get(name).ok_or_else(|| anyhow!("unknown plugin {name}"))?;
-    (entry.build)(&resolved.get(name).cloned().unwrap_or_default(), env).map_err(|e| anyhow!("building {name}: {e}"))
+    entry.build(&resolved.get(name).cloned().unwrap_or_default(), env).map_err(|e| anyhow!("building {name}: {e}"))
 }
 
 /// Builds the preprocessors named in order, each with its name.

@@ -216,3 +216,82 @@ fn preprocess_writes_the_corrected_frames_of_a_plain_image_folder() {
     let (ok, _, err) = preprocess(&["--set", "plugins.vignetting.source=light"]);
     assert!(!ok && err.contains("light.toml") && err.contains("source"), "{err}");
 }
+
+/// The example plugin library, built by cargo as a dependency of these tests (cdylib): in
+/// `target/<profile>/deps/` under `cargo test`, in `target/<profile>/` under `cargo build`.
+fn example_library() -> std::path::PathBuf {
+    let exe = std::path::PathBuf::from(env!("CARGO_BIN_EXE_capsule-slam"));
+    let profile_dir = exe.parent().expect("the binary is in a folder").to_path_buf();
+    let file = format!("{}capsule_slam_dylib_example{}", std::env::consts::DLL_PREFIX, std::env::consts::DLL_SUFFIX);
+    [profile_dir.join("deps").join(&file), profile_dir.join(&file)]
+        .into_iter()
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| panic!("{file} not found beside {}: is capsule-slam-dylib-example a cdylib dev-dependency of apps?", exe.display()))
+}
+
+#[test]
+fn a_plugin_library_loads_lists_its_plugins_and_runs_in_a_pipeline() {
+    let lib = example_library();
+    let lib = lib.to_str().unwrap();
+    let (ok, out, err) = output(&["--plugin-lib", lib, "plugins"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("example-gamma (preprocessor)") && out.contains("example-inverse-square (depth estimator)"), "{out}");
+    assert!(out.contains("gamma = 2.2  [- in [0.1, 10]]") && out.contains("from the library"), "{out}");
+
+    // Its parameters are validated by the host's config validation like a linked plugin's.
+    let tmp = tempfile::tempdir().unwrap();
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 4);
+    let input = tmp.path().to_str().unwrap();
+    let (ok, _, err) = output(&[
+        "run",
+        "--plugin-lib",
+        lib,
+        "--input",
+        input,
+        "-q",
+        "--set",
+        "pipeline.depth=example-inverse-square",
+        "--set",
+        "plugins.example-inverse-square.z_ref_m=5",
+    ]);
+    assert!(!ok);
+    assert!(err.contains("plugins.example-inverse-square.z_ref_m") && err.contains("[0.0001, 1]"), "{err}");
+
+    // In a pipeline: the library's preprocessor and depth estimator, the linked tracker.
+    let out_dir = tmp.path().join("out");
+    let (ok, stdout, err) = output(&[
+        "run",
+        "--plugin-lib",
+        lib,
+        "--input",
+        input,
+        "--out",
+        out_dir.to_str().unwrap(),
+        "-q",
+        "--set",
+        "pipeline.preprocess=[\"example-gamma\"]",
+        "--set",
+        "pipeline.depth=example-inverse-square",
+        "--set",
+        "pipeline.tracker=ground-truth",
+    ]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("frames            4"), "{stdout}");
+    let config = std::fs::read_to_string(out_dir.join("config.toml")).unwrap();
+    assert!(config.contains("[plugins.example-inverse-square]") && config.contains("z_ref_m = 0.02"), "{config}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap()).unwrap();
+    assert!(summary["surfels"].as_u64().unwrap() > 0, "{summary}");
+}
+
+#[test]
+fn a_missing_plugin_library_names_the_path_and_the_fix() {
+    let (ok, _, err) = output(&["--plugin-lib", "/nonexistent/libmine.so", "plugins"]);
+    assert!(!ok);
+    assert!(err.contains("/nonexistent/libmine.so") && err.contains("no such file") && err.contains("cargo build"), "{err}");
+    // Without the library its plugins are unknown names, and the error lists the known ones.
+    let tmp = tempfile::tempdir().unwrap();
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
+    let (ok, _, err) = output(&["run", "--set", "pipeline.depth=example-inverse-square", "--input", tmp.path().to_str().unwrap(), "-q"]);
+    assert!(!ok);
+    assert!(err.contains("pipeline.depth") && err.contains("example-inverse-square") && err.contains("sensor"), "{err}");
+}

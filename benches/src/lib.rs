@@ -32,7 +32,7 @@ pub fn build(name: &str, p: &Phantom) -> capsule_slam_framework::registry::Stage
     let registry = capsule_slam_framework::Registry::from_inventory().unwrap_or_else(|e| panic!("registry: {e}"));
     let entry = registry.get(name).unwrap_or_else(|| panic!("{name} is not registered"));
     let env = capsule_slam_framework::registry::BuildEnv::new(rig(p), None);
-    (entry.build)(&toml::Table::new(), &env).unwrap_or_else(|e| panic!("building {name}: {e}"))
+    entry.build(&toml::Table::new(), &env).unwrap_or_else(|e| panic!("building {name}: {e}"))
 }
 
 /// A `surfel-cpu` map fused from `frames` of `p` at their ground-truth poses.

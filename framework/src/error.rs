@@ -43,7 +43,8 @@ impl StageError {
 }
 
 /// One problem found while validating a configuration: where, what, and how to fix it.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ConfigProblem {
     /// Dotted key path, e.g. `plugins.surfel-cpu.delta_t` or `pipeline.depth`.
     pub key: String,
@@ -140,6 +141,16 @@ pub enum RegistryError {
         first: String,
         /// Stage kind of the second registration.
         second: String,
+    },
+    /// A shared-library plugin could not be loaded.
+    #[error("plugin library {}: {message} (fix: {fix})", path.display())]
+    Library {
+        /// The library's path.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        message: String,
+        /// What to do about it.
+        fix: String,
     },
 }
 

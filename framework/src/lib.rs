@@ -18,6 +18,7 @@
 //! Units are SI (metres, seconds, radians) unless a name says otherwise; poses are named for
 //! their frames: `t_world_cam` maps camera coordinates to world coordinates.
 
+pub mod abi;
 pub mod camera;
 pub mod config;
 pub mod context;

@@ -124,12 +124,68 @@ pub struct PluginEntry {
     pub summary: &'static str,
     /// Views a depth estimator needs.
     pub views: ViewKind,
-    /// Its parameters' documentation.
-    pub params: fn() -> Vec<ParamDoc>,
-    /// Parses and validates a parameter table without building.
-    pub check: fn(&str, &toml::Table) -> Vec<ConfigProblem>,
-    /// Builds it.
-    pub build: BuildFn,
+    source: Source,
+}
+
+/// Where a plugin's code lives.
+#[derive(Clone, Copy)]
+enum Source {
+    /// Linked into this binary (inventory or a manual registration).
+    Linked { params: fn() -> Vec<ParamDoc>, check: fn(&str, &toml::Table) -> Vec<ConfigProblem>, build: BuildFn },
+    /// Loaded from a shared library through the C ABI ([`crate::abi`]).
+    Library(&'static crate::abi::load::LoadedPlugin),
+}
+
+impl PluginEntry {
+    /// An entry for a plugin linked into this binary, from its three functions (the
+    /// `preprocessor::<P>()`, ... constructors fill them from a [`Plugin`]).
+    pub const fn linked(
+        name: &'static str,
+        kind: StageKind,
+        summary: &'static str,
+        views: ViewKind,
+        params: fn() -> Vec<ParamDoc>,
+        check: fn(&str, &toml::Table) -> Vec<ConfigProblem>,
+        build: BuildFn,
+    ) -> Self {
+        Self { name, kind, summary, views, source: Source::Linked { params, check, build } }
+    }
+
+    pub(crate) fn from_library(plugin: &'static crate::abi::load::LoadedPlugin) -> Self {
+        Self { name: plugin.name, kind: plugin.kind, summary: plugin.summary, views: ViewKind::Mono, source: Source::Library(plugin) }
+    }
+
+    /// Its parameters' documentation (name, unit, default, range, meaning).
+    pub fn param_docs(&self) -> Vec<ParamDoc> {
+        match self.source {
+            Source::Linked { params, .. } => params(),
+            Source::Library(p) => p.params.clone(),
+        }
+    }
+
+    /// Parses and validates a `[plugins.<name>]` table without building: every problem.
+    pub fn check(&self, table: &toml::Table) -> Vec<ConfigProblem> {
+        match self.source {
+            Source::Linked { check, .. } => check(self.name, table),
+            Source::Library(p) => p.check(table),
+        }
+    }
+
+    /// Builds the stage from its `[plugins.<name>]` table.
+    pub fn build(&self, table: &toml::Table, env: &BuildEnv) -> Result<Stage, BuildError> {
+        match self.source {
+            Source::Linked { build, .. } => build(table, env),
+            Source::Library(p) => p.build(table, env),
+        }
+    }
+
+    /// The shared library it came from, if it was loaded from one.
+    pub fn library(&self) -> Option<&'static std::path::Path> {
+        match self.source {
+            Source::Linked { .. } => None,
+            Source::Library(p) => Some(p.library.as_path()),
+        }
+    }
 }
 
 impl std::fmt::Debug for PluginEntry {
@@ -152,15 +208,7 @@ macro_rules! entry_ctor {
                 let params = parse_params::<P::Params>(P::NAME, table).map_err(BuildError::Params)?;
                 Ok(Stage::$kind(Box::new(P::build(params, env)?)))
             }
-            Self {
-                name: P::NAME,
-                kind: StageKind::$kind,
-                summary: P::SUMMARY,
-                views: P::VIEWS,
-                params: <P::Params as PluginParams>::docs,
-                check: check::<P>,
-                build: build::<P>,
-            }
+            Self::linked(P::NAME, StageKind::$kind, P::SUMMARY, P::VIEWS, <P::Params as PluginParams>::docs, check::<P>, build::<P>)
         }
     };
 }
@@ -213,6 +261,19 @@ impl Registry {
             r.register(*e)?;
         }
         Ok(r)
+    }
+
+    /// Loads the plugins of a shared library built against the C ABI of [`crate::abi`] and
+    /// registers them; returns their names. The library stays loaded for the life of the
+    /// process.
+    pub fn load_library(&mut self, path: &std::path::Path) -> Result<Vec<&'static str>, RegistryError> {
+        let plugins = crate::abi::load::load(path)?;
+        let mut names = Vec::new();
+        for p in plugins {
+            self.register(PluginEntry::from_library(p))?;
+            names.push(p.name);
+        }
+        Ok(names)
     }
 
     /// Adds a plugin; a name already taken is an error.

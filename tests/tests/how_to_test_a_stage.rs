@@ -22,7 +22,7 @@ fn the_sensor_depth_estimator_clips_to_its_range() {
     let entry = registry.get("sensor").unwrap();
     let params: toml::Table = toml::from_str("max_depth_m = 0.0505").unwrap();
     let env = BuildEnv::new(ds.rig(), None);
-    let Ok(Stage::DepthEstimator(mut sensor)) = (entry.build)(&params, &env) else { panic!("not a depth estimator") };
+    let Ok(Stage::DepthEstimator(mut sensor)) = entry.build(&params, &env) else { panic!("not a depth estimator") };
 
     // 3. Run it with a context and check the output against the ground truth.
     let rig: Rig = ds.rig();

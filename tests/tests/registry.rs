@@ -43,11 +43,11 @@ fn duplicate_names_are_an_error() {
 fn every_parameter_is_documented_with_a_unit_and_a_valid_default() {
     let r = test_registry();
     for e in r.iter() {
-        for p in (e.params)() {
+        for p in e.param_docs() {
             assert!(!p.doc.is_empty(), "{}.{} has no doc", e.name, p.name);
             assert!(!p.unit.is_empty(), "{}.{} has no unit", e.name, p.name);
             assert!(p.default.is_some(), "{}.{} has no default", e.name, p.name);
         }
-        assert!((e.check)(e.name, &toml::Table::new()).is_empty(), "{}'s defaults do not validate", e.name);
+        assert!(e.check(&toml::Table::new()).is_empty(), "{}'s defaults do not validate", e.name);
     }
 }

@@ -56,7 +56,7 @@ fn plugin_table(s: &mut String, e: &PluginEntry, selected: bool) {
     let c = if selected { "" } else { "# " };
     let _ = writeln!(s, "\n# {} ({}): {}", e.name, e.kind.as_str(), e.summary);
     let _ = writeln!(s, "{c}[plugins.{}]", e.name);
-    for d in (e.params)() {
+    for d in e.param_docs() {
         let range = d.range.map(|(lo, hi)| format!(", range [{lo}, {hi}]")).unwrap_or_default();
         let _ = writeln!(s, "# {} ({}{range})", d.doc, d.unit);
         if let Some(v) = d.default {

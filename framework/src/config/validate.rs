@@ -25,9 +25,9 @@ pub fn validate(config: &Config, registry: &Registry, rig: ViewKind, source_name
             }
             Some(e) => {
                 let table = config.plugins.get(name).unwrap_or(&empty);
-                let found = (e.check)(name, table);
+                let found = e.check(table);
                 if found.is_empty() {
-                    resolved.insert(name.to_owned(), with_defaults(&(e.params)(), table));
+                    resolved.insert(name.to_owned(), with_defaults(&e.param_docs(), table));
                 }
                 problems.extend(found);
                 if kind == StageKind::DepthEstimator && e.views == ViewKind::Stereo && rig == ViewKind::Mono {

@@ -69,7 +69,7 @@ impl Pipeline {
         let mut build = |name: &str| -> Option<Stage> {
             let entry = registry.get(name)?;
             let table = resolved_tables.get(name).cloned().unwrap_or_default();
-            match (entry.build)(&table, env) {
+            match entry.build(&table, env) {
                 Ok(s) => Some(s),
                 Err(BuildError::Params(mut p)) => {
                     problems.append(&mut p);

@@ -1,0 +1,20 @@
+//! An example plugin library for capsule-slam's C ABI ([`capsule_slam_framework::abi`]),
+//! built as a `cdylib` and loaded at run time:
+//!
+//! ```sh
+//! cargo build --release -p capsule-slam-dylib-example
+//! capsule-slam --plugin-lib target/release/libcapsule_slam_dylib_example.so run \
+//!     --set 'pipeline.preprocess=["example-gamma"]' --set pipeline.depth=example-inverse-square
+//! ```
+//!
+//! Copy this crate to start a plugin of your own: one file per plugin, parameters declared
+//! with `plugin_params!` (validated by the host like a linked plugin's), and the list of
+//! exported types in [`export_plugins!`](capsule_slam_framework::export_plugins) below.
+
+mod gamma;
+mod inverse_square;
+
+pub use gamma::Gamma;
+pub use inverse_square::InverseSquare;
+
+capsule_slam_framework::export_plugins!(preprocessor Gamma, depth_estimator InverseSquare);
