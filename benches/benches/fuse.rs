@@ -1,19 +1,33 @@
-//! `surfel-cpu`: fusing one frame into a map of the 30 frames before it, and predicting the
-//! active model, at 250×250 and 320×320.
+//! `surfel-cpu` and `surfel-gpu`: fusing one frame into a map of the 30 frames before it, and
+//! predicting the active model, at 250×250 and 320×320. Without a GPU adapter the
+//! `surfel-gpu` group is skipped with a message (`CAPSULE_SLAM_REQUIRE_GPU=1`: a failure).
 
-use capsule_slam_benches::{fused_map, phantom, rgbd, rig};
+use capsule_slam_benches::{fused_map_of, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::phantom::SizePreset;
 use capsule_slam_framework::{Context, ModelSet};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 
 fn fuse(c: &mut Criterion) {
-    let mut g = c.benchmark_group("surfel-cpu");
+    for name in ["surfel-cpu", "surfel-gpu"] {
+        fuse_with(c, name);
+    }
+}
+
+fn fuse_with(c: &mut Criterion, name: &str) {
+    let mut g = c.benchmark_group(name);
     g.sample_size(20);
     for (size, label) in [(SizePreset::NanEye, "250x250"), (SizePreset::Capsule320, "320x320")] {
         let p = phantom(size, 300);
         let rig = rig(&p);
-        let mut fuser = fused_map(&p, 70..100);
+        let mut fuser = match fused_map_of(name, &p, 70..100) {
+            Ok(f) => f,
+            Err(e) => {
+                assert!(std::env::var("CAPSULE_SLAM_REQUIRE_GPU").as_deref() != Ok("1"), "CAPSULE_SLAM_REQUIRE_GPU=1 and {name}: {e}");
+                eprintln!("\n!!! SKIPPED bench {name}: {e}\n");
+                return;
+            }
+        };
         let next = rgbd(&p, 100);
         let pose = next.gt_t_world_cam.unwrap_or_default();
         g.bench_with_input(BenchmarkId::new("fuse", label), &next, |b, f| {

@@ -37,13 +37,25 @@ pub fn build(name: &str, p: &Phantom) -> capsule_slam_framework::registry::Stage
 
 /// A `surfel-cpu` map fused from `frames` of `p` at their ground-truth poses.
 pub fn fused_map(p: &Phantom, frames: std::ops::Range<usize>) -> Box<dyn capsule_slam_framework::Fuser> {
+    fused_map_of("surfel-cpu", p, frames).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// A map of the fuser `name` fused from `frames` of `p` at their ground-truth poses, or why it
+/// could not be built (e.g. `surfel-gpu` without a GPU adapter).
+pub fn fused_map_of(name: &str, p: &Phantom, frames: std::ops::Range<usize>) -> Result<Box<dyn capsule_slam_framework::Fuser>, String> {
+    link();
     let rig = rig(p);
-    let capsule_slam_framework::registry::Stage::Fuser(mut fuser) = build("surfel-cpu", p) else { panic!("surfel-cpu is a fuser") };
+    let registry = capsule_slam_framework::Registry::from_inventory().map_err(|e| e.to_string())?;
+    let entry = registry.get(name).ok_or_else(|| format!("{name} is not registered"))?;
+    let env = capsule_slam_framework::registry::BuildEnv::new(rig.clone(), None);
+    let capsule_slam_framework::registry::Stage::Fuser(mut fuser) = entry.build(&toml::Table::new(), &env).map_err(|e| format!("building {name}: {e}"))? else {
+        return Err(format!("{name} is not a fuser"));
+    };
     let mut r = capsule_slam_framework::context::StageReport::default();
     for i in frames {
         let f = rgbd(p, i);
         let pose = f.gt_t_world_cam.unwrap_or_default();
-        fuser.fuse(&f, &pose, &mut capsule_slam_framework::Context::new(i, &rig, None, &mut r)).unwrap_or_else(|e| panic!("{e}"));
+        fuser.fuse(&f, &pose, &mut capsule_slam_framework::Context::new(i, &rig, None, &mut r)).map_err(|e| e.to_string())?;
     }
-    fuser
+    Ok(fuser)
 }

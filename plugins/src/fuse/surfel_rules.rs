@@ -4,6 +4,9 @@
 //! doi:10.1177/0278364916669237) as digested in `shared/design/elasticfusion.md` §3.
 
 use capsule_slam_framework::Surfel;
+use capsule_slam_framework::camera::PinholeCamera;
+
+use super::surfel_cpu::SurfelCpuParams;
 use nalgebra::{Point3, Vector3};
 
 /// Confidence of a new measurement from its pixel's distance to the principal point:
@@ -91,6 +94,26 @@ pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
     }
     s.confidence = c + a;
     s.t = now;
+}
+
+/// Reactivates, after a loop closure, the stable inactive surfels seen from the corrected
+/// pose `t_world_cam` (inside the depth range and the field of view): their last sighting
+/// becomes `now` (ElasticFusion marks the matched inactive surfels active). Returns how many.
+pub fn reactivate(surfels: &mut [Surfel], t_world_cam: &capsule_slam_framework::Iso3, cam: &PinholeCamera, now: u32, p: &SurfelCpuParams) -> usize {
+    let t_cam_world = t_world_cam.inverse().cast::<f32>();
+    let (stable, dt, lo, hi) = (p.stable_confidence, p.delta_t, p.min_depth_m, p.max_depth_m);
+    let mut reactivated = 0usize;
+    for s in surfels {
+        if s.confidence < stable || s.is_active(now, dt) {
+            continue;
+        }
+        let q = t_cam_world * s.position_m;
+        if q.z > lo && q.z < hi && cam.project(&q.cast()).is_some_and(|uv| cam.in_fov(uv.x, uv.y)) {
+            s.t = now;
+            reactivated += 1;
+        }
+    }
+    reactivated
 }
 
 #[cfg(test)]

@@ -15,11 +15,10 @@ use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{FuseStats, LoopClosure};
 use capsule_slam_framework::{Context, Fuser, Iso3, MapStats, ModelSet, ModelView, Plugin, StageError, Surfel, SurfelSet, register};
-use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
-use super::surfel_rules::{Measurement, confidence, depth_gate, merge, normal_gate, radius};
-use crate::common::maps::{GeometryParams, geometry, normal, vertex};
+use super::measure::measurements;
+use super::surfel_rules::{Measurement, depth_gate, merge, normal_gate, reactivate};
 pub use splat::{IndexMap, predict};
 
 capsule_slam_framework::plugin_params! {
@@ -97,80 +96,40 @@ impl SurfelCpu {
     fn associate(&self, frame: &RgbdFrame, t_world_cam: &Iso3, ctx: &mut Context) -> Vec<Action> {
         let p = &self.params;
         let cam = ctx.rig.camera();
-        let clock = std::time::Instant::now();
-        let g = geometry(
-            frame,
-            cam,
-            &GeometryParams {
-                min_m: p.min_depth_m,
-                max_m: p.max_depth_m,
-                radius_px: p.bilateral_radius_px as usize,
-                sigma_px: p.bilateral_sigma_px,
-                sigma_m: p.bilateral_sigma_m,
-                edge_jump_m: p.edge_jump_m,
-            },
-        );
-        let (raw, v_raw, n_map) = (&g.raw, &g.v_raw, &g.normals);
-        ctx.count("ms_maps", clock.elapsed().as_secs_f64() * 1e3);
+        let measured = measurements(frame, t_world_cam, cam, p, ctx);
         let clock = std::time::Instant::now();
         let now = self.now;
         let index = IndexMap::render(&self.surfels, |s| self.is_active(s, now), cam, t_world_cam, p.max_depth_m);
         ctx.count("ms_index_map", clock.elapsed().as_secs_f64() * 1e3);
-        let (w, h) = raw.size();
-        let step = p.subsample as usize;
-        let phase = frame.index % step.max(1);
-        let half_diag = cam.half_diagonal_px() as f32;
-        let f_mean = (0.5 * (cam.fx + cam.fy)) as f32;
-        let t = t_world_cam.cast::<f32>();
-        // An albedo image of another size than the depth is ignored (a plugin's bug, not the
-        // map's to crash on).
-        let albedo = frame.albedo.as_ref().filter(|a| a.size() == (w, h));
-        (0..h)
-            .into_par_iter()
-            .filter(|y| y % step == phase)
-            .map(|y| {
-                let mut out = Vec::new();
-                for x in (phase..w).step_by(step) {
-                    let (Some(v), Some(n)) = (vertex(v_raw, x, y), normal(n_map, x, y)) else { continue };
-                    let ray = Vector3::new((x as f32 - cam.cx as f32) / cam.fx as f32, (y as f32 - cam.cy as f32) / cam.fy as f32, 1.0);
-                    let lambda = ray.norm();
-                    let ray_unit = ray / lambda;
-                    let rho = ((x as f32 - cam.cx as f32).powi(2) + (y as f32 - cam.cy as f32).powi(2)).sqrt();
-                    let m = Measurement {
-                        position_m: t * Point3::from(v),
-                        normal: t.rotation * n,
-                        colour: frame.colour.pixel(x, y),
-                        confidence: confidence(rho, half_diag),
-                        radius_m: radius(v.z, f_mean, n.z),
-                        albedo: albedo.map_or(0.0, |a| a.at(x, y)).max(0.0),
-                    };
-                    // Candidates: the index map's 3×3 neighbourhood.
-                    let mut best: Option<(f32, u32)> = None;
-                    for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
-                        for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
-                            let k = yy * index.width + xx;
-                            let i = index.index[k];
-                            if i == u32::MAX {
-                                continue;
-                            }
-                            let (pm, nm) = (index.p_cam[k], index.n_cam[k]);
-                            if !depth_gate(pm.z, v.z, lambda, p.depth_gate_m) || !normal_gate(&nm, &n, p.normal_gate_rad, p.normal_bypass_nz) {
-                                continue;
-                            }
-                            let perp = (pm.coords - ray_unit * pm.coords.dot(&ray_unit)).norm();
-                            if best.is_none_or(|(d, _)| perp < d) {
-                                best = Some((perp, i));
-                            }
+        let (w, h) = (cam.width, cam.height);
+        measured
+            .par_iter()
+            .map(|pm| {
+                let (x, y, n) = (pm.x, pm.y, pm.n_cam);
+                // Candidates: the index map's 3×3 neighbourhood.
+                let mut best: Option<(f32, u32)> = None;
+                for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                    for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                        let k = yy * index.width + xx;
+                        let i = index.index[k];
+                        if i == u32::MAX {
+                            continue;
+                        }
+                        let (pc, nm) = (index.p_cam[k], index.n_cam[k]);
+                        if !depth_gate(pc.z, pm.z_live_m, pm.lambda, p.depth_gate_m) || !normal_gate(&nm, &n, p.normal_gate_rad, p.normal_bypass_nz) {
+                            continue;
+                        }
+                        let perp = (pc.coords - pm.ray_unit * pc.coords.dot(&pm.ray_unit)).norm();
+                        if best.is_none_or(|(d, _)| perp < d) {
+                            best = Some((perp, i));
                         }
                     }
-                    out.push(match best {
-                        Some((_, i)) => Action::Merge(i, m),
-                        None => Action::Add(m),
-                    });
                 }
-                out
+                match best {
+                    Some((_, i)) => Action::Merge(i, pm.m),
+                    None => Action::Add(pm.m),
+                }
             })
-            .flatten_iter()
             .collect()
     }
 }
@@ -226,20 +185,7 @@ impl Fuser for SurfelCpu {
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         // Reactivate the stable inactive surfels seen from the corrected pose.
         let now = (ctx.frame_index as u32).max(self.now);
-        let cam = ctx.rig.camera();
-        let t_cam_world = closure.t_world_cam.inverse().cast::<f32>();
-        let (stable, dt, lo, hi) = (self.params.stable_confidence, self.params.delta_t, self.params.min_depth_m, self.params.max_depth_m);
-        let mut reactivated = 0usize;
-        for s in &mut self.surfels {
-            if s.confidence < stable || s.is_active(now, dt) {
-                continue;
-            }
-            let p = t_cam_world * s.position_m;
-            if p.z > lo && p.z < hi && cam.project(&p.cast()).is_some_and(|uv| cam.in_fov(uv.x, uv.y)) {
-                s.t = now;
-                reactivated += 1;
-            }
-        }
+        let reactivated = reactivate(&mut self.surfels, &closure.t_world_cam, ctx.rig.camera(), now, &self.params);
         ctx.count("surfels_reactivated", reactivated as f64);
         Ok(())
     }

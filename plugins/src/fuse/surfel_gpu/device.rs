@@ -1,0 +1,560 @@
+//! The device side of `surfel-gpu`: buffers, the kernels of `fuse.wgsl` and their dispatch.
+
+use std::sync::{Arc, OnceLock};
+
+use bytemuck::{Pod, Zeroable};
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::{Iso3, ModelSet, ModelView, StageError, Surfel};
+use nalgebra::{Point3, Vector3};
+
+use super::super::measure::PixelMeasurement;
+use super::super::surfel_cpu::SurfelCpuParams;
+use crate::common::gpu::{Gpu, gpu_error};
+
+/// A surfel as the kernels see it (48 bytes; `Surfel` in `fuse.wgsl`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuSurfel {
+    pos: [f32; 3],
+    conf: f32,
+    nrm: [f32; 3],
+    radius: f32,
+    colour: u32,
+    t0: u32,
+    t: u32,
+    albedo: f32,
+}
+
+fn pack_colour(c: [u8; 3]) -> u32 {
+    u32::from(c[0]) | (u32::from(c[1]) << 8) | (u32::from(c[2]) << 16)
+}
+
+fn unpack_colour(c: u32) -> [u8; 3] {
+    [(c & 0xff) as u8, ((c >> 8) & 0xff) as u8, ((c >> 16) & 0xff) as u8]
+}
+
+impl From<&Surfel> for GpuSurfel {
+    fn from(s: &Surfel) -> Self {
+        Self {
+            pos: s.position_m.coords.into(),
+            conf: s.confidence,
+            nrm: s.normal.into(),
+            radius: s.radius_m,
+            colour: pack_colour(s.colour),
+            t0: s.t0,
+            t: s.t,
+            albedo: s.albedo,
+        }
+    }
+}
+
+impl From<&GpuSurfel> for Surfel {
+    fn from(s: &GpuSurfel) -> Self {
+        Surfel {
+            position_m: Point3::from(s.pos),
+            normal: Vector3::from(s.nrm),
+            colour: unpack_colour(s.colour),
+            confidence: s.conf,
+            radius_m: s.radius,
+            t0: s.t0,
+            t: s.t,
+            albedo: s.albedo,
+        }
+    }
+}
+
+/// A measurement as the kernels see it (80 bytes; `Measurement` in `fuse.wgsl`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuMeasurement {
+    pos: [f32; 3],
+    conf: f32,
+    nrm: [f32; 3],
+    radius: f32,
+    colour: u32,
+    albedo: f32,
+    pixel: u32,
+    z_live: f32,
+    n_cam: [f32; 3],
+    lambda: f32,
+    ray: [f32; 3],
+    pad: f32,
+}
+
+impl GpuMeasurement {
+    /// From a measurement of an image `width` pixels wide.
+    pub fn new(p: &PixelMeasurement, width: usize) -> Self {
+        let m = &p.m;
+        Self {
+            pos: m.position_m.coords.into(),
+            conf: m.confidence,
+            nrm: m.normal.into(),
+            radius: m.radius_m,
+            colour: pack_colour(m.colour),
+            albedo: m.albedo,
+            pixel: (p.y * width + p.x) as u32,
+            z_live: p.z_live_m,
+            n_cam: p.n_cam.into(),
+            lambda: p.lambda,
+            ray: p.ray_unit.into(),
+            pad: 0.0,
+        }
+    }
+}
+
+/// One predicted pixel (36 bytes; `ViewPixel` in `fuse.wgsl`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct ViewPixel {
+    depth: f32,
+    nx: f32,
+    ny: f32,
+    nz: f32,
+    colour: u32,
+    conf: f32,
+    t0: u32,
+    t: u32,
+    albedo: f32,
+}
+
+/// The uniforms (160 bytes; `Params` in `fuse.wgsl`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct Uniforms {
+    t_cw: [[f32; 4]; 4],
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    width: u32,
+    height: u32,
+    n_surfels: u32,
+    n_meas: u32,
+    now: u32,
+    delta_t: u32,
+    life: u32,
+    set: u32,
+    stable: f32,
+    min_depth: f32,
+    max_depth: f32,
+    depth_gate: f32,
+    normal_gate: f32,
+    bypass_nz: f32,
+    radius_ratio: f32,
+    scan_base: u32,
+    scan_n: u32,
+    scan_slot: u32,
+    add_base: u32,
+    pad: u32,
+}
+
+/// What one call works with: the pose, the time, the model set, the parameters.
+pub struct Phase {
+    /// Camera from world.
+    pub t_cam_world: Iso3,
+    /// The current frame.
+    pub now: u32,
+    /// Active or inactive model (prediction).
+    pub set: ModelSet,
+    /// The fuser's parameters.
+    pub params: SurfelCpuParams,
+}
+
+/// The counts a fuse reads back.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Counts {
+    /// Surfels after the frame.
+    pub total: u32,
+    /// New surfels.
+    pub added: u32,
+    /// Surfels updated.
+    pub merged: u32,
+    /// Active surfels after the frame.
+    pub active: u32,
+    /// Stable surfels after the frame.
+    pub stable: u32,
+}
+
+const KERNELS: [&str; 15] = [
+    "clear_z",
+    "index_depth",
+    "index_id",
+    "associate",
+    "merge",
+    "keep",
+    "scan_blocks",
+    "scan_sums",
+    "scan_add",
+    "compact",
+    "append",
+    "count",
+    "splat_depth",
+    "splat_id",
+    "resolve",
+];
+
+/// The compiled kernels, made once per process.
+struct Kernels {
+    layout: wgpu::BindGroupLayout,
+    pipelines: Vec<wgpu::ComputePipeline>,
+}
+
+impl Kernels {
+    fn get(&self, name: &str) -> &wgpu::ComputePipeline {
+        let i = KERNELS.iter().position(|k| *k == name).unwrap_or(0);
+        &self.pipelines[i]
+    }
+}
+
+static KERNEL_CACHE: OnceLock<Result<Arc<Kernels>, String>> = OnceLock::new();
+
+fn kernels(gpu: &Gpu) -> Result<Arc<Kernels>, StageError> {
+    KERNEL_CACHE.get_or_init(|| compile(gpu).map(Arc::new)).clone().map_err(gpu_error)
+}
+
+fn compile(gpu: &Gpu) -> Result<Kernels, String> {
+    let d = &gpu.device;
+    let scope = d.push_error_scope(wgpu::ErrorFilter::Validation);
+    let module =
+        d.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("fuse.wgsl"), source: wgpu::ShaderSource::Wgsl(include_str!("fuse.wgsl").into()) });
+    let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Storage { read_only }, has_dynamic_offset: false, min_binding_size: None },
+        count: None,
+    };
+    let mut entries = vec![wgpu::BindGroupLayoutEntry {
+        binding: 0,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: None },
+        count: None,
+    }];
+    entries.extend((1..=11).map(|b| storage(b, b == 3)));
+    let layout = d.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("surfel-gpu"), entries: &entries });
+    let pipeline_layout =
+        d.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("surfel-gpu"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
+    let pipelines = KERNELS
+        .iter()
+        .map(|name| {
+            d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(name),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some(name),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        })
+        .collect();
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(format!("compiling fuse.wgsl: {e}"));
+    }
+    Ok(Kernels { layout, pipelines })
+}
+
+const SURFEL_BYTES: u64 = std::mem::size_of::<GpuSurfel>() as u64;
+const MEAS_BYTES: u64 = std::mem::size_of::<GpuMeasurement>() as u64;
+const VIEW_BYTES: u64 = std::mem::size_of::<ViewPixel>() as u64;
+const COUNTERS: u64 = 8;
+const WG: u32 = 256;
+
+/// Buffers sized by the surfel capacity.
+struct Sized {
+    cap: u32,
+    surf: [wgpu::Buffer; 2],
+    winner: wgpu::Buffer,
+    /// Scan buffers: bound in `binds`, held here with them.
+    _scan: [wgpu::Buffer; 3],
+    binds: [wgpu::BindGroup; 2],
+    staging_surfels: wgpu::Buffer,
+}
+
+/// The map on the device.
+pub struct DeviceMap {
+    gpu: Arc<Gpu>,
+    kernels: Arc<Kernels>,
+    width: usize,
+    height: usize,
+    uniforms: wgpu::Buffer,
+    meas: wgpu::Buffer,
+    zdepth: wgpu::Buffer,
+    zid: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    view: wgpu::Buffer,
+    staging_counters: wgpu::Buffer,
+    staging_view: wgpu::Buffer,
+    sized: Sized,
+    /// Which of the two surfel buffers holds the map.
+    cur: usize,
+    n: u32,
+    n_before: u32,
+}
+
+fn buffer(gpu: &Gpu, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+    gpu.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size: size.max(16), usage, mapped_at_creation: false })
+}
+
+const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST).union(wgpu::BufferUsages::COPY_SRC);
+const STAGING: wgpu::BufferUsages = wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST);
+
+impl DeviceMap {
+    /// An empty map for a `width × height` camera, with room for 4 surfels a pixel at first
+    /// (it grows by doubling).
+    pub fn new(gpu: Arc<Gpu>, width: usize, height: usize) -> Result<Self, StageError> {
+        Self::with_capacity(gpu, width, height, (4 * width * height).max(1024) as u32)
+    }
+
+    /// An empty map with room for `cap` surfels at first.
+    pub fn with_capacity(gpu: Arc<Gpu>, width: usize, height: usize, cap: u32) -> Result<Self, StageError> {
+        let kernels = kernels(&gpu)?;
+        let px = (width * height) as u64;
+        let uniforms = buffer(&gpu, "uniforms", std::mem::size_of::<Uniforms>() as u64, wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST);
+        let meas = buffer(&gpu, "measurements", px * MEAS_BYTES, STORAGE);
+        let zdepth = buffer(&gpu, "zdepth", px * 4, STORAGE);
+        let zid = buffer(&gpu, "zid", px * 4, STORAGE);
+        let counters = buffer(&gpu, "counters", COUNTERS * 4, STORAGE);
+        let view = buffer(&gpu, "view", px * VIEW_BYTES, STORAGE);
+        let staging_counters = buffer(&gpu, "staging counters", COUNTERS * 4, STAGING);
+        let staging_view = buffer(&gpu, "staging view", px * VIEW_BYTES, STAGING);
+        let cap = cap.max(1);
+        Ok(Self {
+            sized: Self::sized(&gpu, &kernels, cap, px as u32, [&uniforms, &meas, &zdepth, &zid, &counters, &view])?,
+            gpu,
+            kernels,
+            width,
+            height,
+            uniforms,
+            meas,
+            zdepth,
+            zid,
+            counters,
+            view,
+            staging_counters,
+            staging_view,
+            cur: 0,
+            n: 0,
+            n_before: 0,
+        })
+    }
+
+    fn sized(gpu: &Gpu, kernels: &Kernels, cap: u32, pixels: u32, fixed: [&wgpu::Buffer; 6]) -> Result<Sized, StageError> {
+        let bytes = u64::from(cap) * SURFEL_BYTES;
+        if bytes > gpu.limits.max_storage_buffer_binding_size {
+            return Err(gpu_error(format!(
+                "the map needs {cap} surfels ({} MiB), more than this device binds in one buffer ({} MiB); use surfel-cpu or a shorter sequence",
+                bytes >> 20,
+                gpu.limits.max_storage_buffer_binding_size >> 20
+            )));
+        }
+        let surf = [buffer(gpu, "surfels 0", bytes, STORAGE), buffer(gpu, "surfels 1", bytes, STORAGE)];
+        let winner = buffer(gpu, "winner", u64::from(cap) * 4, STORAGE);
+        let flag_len = u64::from(cap) + u64::from(pixels);
+        let flags = buffer(gpu, "flags", flag_len * 4, STORAGE);
+        let offsets = buffer(gpu, "offsets", flag_len * 4, STORAGE);
+        let blocks = buffer(gpu, "blocks", flag_len.div_ceil(u64::from(WG)) * 4, STORAGE);
+        let [uniforms, meas, zdepth, zid, counters, view] = fixed;
+        let bind = |a: &wgpu::Buffer, b: &wgpu::Buffer| {
+            let res = [uniforms, a, b, meas, zdepth, zid, &winner, &flags, &offsets, &blocks, counters, view];
+            let entries: Vec<wgpu::BindGroupEntry> =
+                res.iter().enumerate().map(|(i, buf)| wgpu::BindGroupEntry { binding: i as u32, resource: buf.as_entire_binding() }).collect();
+            gpu.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("surfel-gpu"), layout: &kernels.layout, entries: &entries })
+        };
+        let binds = [bind(&surf[0], &surf[1]), bind(&surf[1], &surf[0])];
+        let staging_surfels = buffer(gpu, "staging surfels", bytes, STAGING);
+        Ok(Sized { cap, surf, winner, _scan: [flags, offsets, blocks], binds, staging_surfels })
+    }
+
+    /// The device.
+    pub fn gpu(&self) -> &Gpu {
+        &self.gpu
+    }
+
+    /// The camera size it was made for.
+    pub fn size(&self) -> (usize, usize) {
+        (self.width, self.height)
+    }
+
+    /// Surfels before the last fuse.
+    pub fn len_before(&self) -> u32 {
+        self.n_before
+    }
+
+    /// Makes room for `needed` surfels, keeping the map.
+    fn reserve(&mut self, needed: u32) -> Result<(), StageError> {
+        if needed <= self.sized.cap {
+            return Ok(());
+        }
+        let cap = needed.max(self.sized.cap.saturating_mul(2));
+        let fixed = [&self.uniforms, &self.meas, &self.zdepth, &self.zid, &self.counters, &self.view];
+        let sized = Self::sized(&self.gpu, &self.kernels, cap, (self.width * self.height) as u32, fixed)?;
+        let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow") });
+        enc.copy_buffer_to_buffer(&self.sized.surf[self.cur], 0, &sized.surf[0], 0, u64::from(self.n) * SURFEL_BYTES);
+        self.gpu.queue.submit([enc.finish()]);
+        self.sized = sized;
+        self.cur = 0;
+        Ok(())
+    }
+
+    fn uniforms(&self, phase: &Phase, cam: &PinholeCamera) -> Uniforms {
+        let p = &phase.params;
+        let m = phase.t_cam_world.cast::<f32>().to_homogeneous();
+        let mut t_cw = [[0f32; 4]; 4];
+        for (c, col) in t_cw.iter_mut().enumerate() {
+            for (r, v) in col.iter_mut().enumerate() {
+                *v = m[(r, c)];
+            }
+        }
+        Uniforms {
+            t_cw,
+            fx: cam.fx as f32,
+            fy: cam.fy as f32,
+            cx: cam.cx as f32,
+            cy: cam.cy as f32,
+            width: cam.width as u32,
+            height: cam.height as u32,
+            n_surfels: self.n,
+            n_meas: 0,
+            now: phase.now,
+            delta_t: p.delta_t,
+            life: p.unstable_lifetime,
+            set: u32::from(phase.set != ModelSet::Active),
+            stable: p.stable_confidence,
+            min_depth: p.min_depth_m,
+            max_depth: p.max_depth_m,
+            depth_gate: p.depth_gate_m,
+            normal_gate: p.normal_gate_rad,
+            bypass_nz: p.normal_bypass_nz,
+            radius_ratio: p.radius_ratio,
+            scan_base: 0,
+            scan_n: 0,
+            scan_slot: 0,
+            add_base: self.sized.cap,
+            pad: 0,
+        }
+    }
+
+    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: &str, threads: u64) {
+        let groups = threads.div_ceil(u64::from(WG));
+        if groups == 0 {
+            return;
+        }
+        pass.set_pipeline(self.kernels.get(kernel));
+        pass.set_bind_group(0, &self.sized.binds[self.cur], &[]);
+        pass.dispatch_workgroups(groups.min(65_535) as u32, 1, 1);
+    }
+
+    fn scan(&self, pass: &mut wgpu::ComputePass<'_>, n: u64) {
+        self.dispatch(pass, "scan_blocks", n);
+        self.dispatch(pass, "scan_sums", 1);
+        self.dispatch(pass, "scan_add", n);
+    }
+
+    /// Fuses one frame's measurements (in pixel order) at `phase`.
+    pub fn fuse(&mut self, phase: &Phase, cam: &PinholeCamera, meas: &[GpuMeasurement]) -> Result<Counts, StageError> {
+        let n_meas = meas.len() as u32;
+        if meas.len() > self.width * self.height {
+            return Err(gpu_error("more measurements than pixels"));
+        }
+        self.reserve(self.n.saturating_add(n_meas))?;
+        self.n_before = self.n;
+        let q = &self.gpu.queue;
+        q.write_buffer(&self.meas, 0, bytemuck::cast_slice(meas));
+        let px = (self.width * self.height) as u64;
+        let n = u64::from(self.n);
+        // 1: index map, association, merge, keep flags and the order-preserving compaction.
+        let mut u = self.uniforms(phase, cam);
+        u.n_meas = n_meas;
+        u.scan_base = 0;
+        u.scan_n = self.n;
+        u.scan_slot = 0;
+        q.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fuse 1") });
+        enc.clear_buffer(&self.counters, 0, None);
+        enc.clear_buffer(&self.sized.winner, 0, None);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("fuse 1"), timestamp_writes: None });
+            self.dispatch(&mut pass, "clear_z", px);
+            self.dispatch(&mut pass, "index_depth", n);
+            self.dispatch(&mut pass, "index_id", n);
+            self.dispatch(&mut pass, "associate", u64::from(n_meas));
+            self.dispatch(&mut pass, "merge", n);
+            self.dispatch(&mut pass, "keep", n);
+            self.scan(&mut pass, n);
+            self.dispatch(&mut pass, "compact", n);
+        }
+        q.submit([enc.finish()]);
+        // 2: the new surfels after the kept ones, and the counts.
+        u.scan_base = self.sized.cap;
+        u.scan_n = n_meas;
+        u.scan_slot = 1;
+        q.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fuse 2") });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("fuse 2"), timestamp_writes: None });
+            self.scan(&mut pass, u64::from(n_meas));
+            self.dispatch(&mut pass, "append", u64::from(n_meas));
+            self.dispatch(&mut pass, "count", n + u64::from(n_meas));
+        }
+        q.submit([enc.finish()]);
+        let raw = self.gpu.read(&self.counters, &self.staging_counters, COUNTERS * 4)?;
+        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&raw);
+        let counts = Counts { total: c[0] + c[1], added: c[1], merged: c[2], active: c[3], stable: c[4] };
+        self.n = counts.total;
+        self.cur = 1 - self.cur;
+        Ok(counts)
+    }
+
+    /// The splatted prediction of the active or inactive stable model.
+    pub fn predict(&mut self, phase: &Phase, cam: &PinholeCamera, t_world_cam: &Iso3) -> Result<ModelView, StageError> {
+        let (w, h) = (cam.width, cam.height);
+        if (w, h) != (self.width, self.height) {
+            return Err(StageError::invalid_input(format!("the camera is {w}×{h}, the map was made for {}×{}", self.width, self.height)));
+        }
+        let u = self.uniforms(phase, cam);
+        self.gpu.queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        let px = (w * h) as u64;
+        let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("predict") });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("predict"), timestamp_writes: None });
+            self.dispatch(&mut pass, "clear_z", px);
+            self.dispatch(&mut pass, "splat_depth", u64::from(self.n));
+            self.dispatch(&mut pass, "splat_id", u64::from(self.n));
+            self.dispatch(&mut pass, "resolve", px);
+        }
+        self.gpu.queue.submit([enc.finish()]);
+        let raw = self.gpu.read(&self.view, &self.staging_view, px * VIEW_BYTES)?;
+        let pixels: Vec<ViewPixel> = bytemuck::pod_collect_to_vec(&raw);
+        let mut view = ModelView::empty(w, h, *t_world_cam);
+        for (k, p) in pixels.iter().enumerate() {
+            if p.depth <= 0.0 {
+                continue;
+            }
+            let (x, y) = (k % w, k / w);
+            *view.depth_m.at_mut(x, y) = p.depth;
+            view.normals_cam.set_pixel(x, y, [p.nx, p.ny, p.nz]);
+            view.colour.set_pixel(x, y, unpack_colour(p.colour));
+            *view.confidence.at_mut(x, y) = p.conf;
+            *view.t0.at_mut(x, y) = p.t0;
+            *view.t.at_mut(x, y) = p.t;
+            *view.albedo.at_mut(x, y) = p.albedo;
+        }
+        Ok(view)
+    }
+
+    /// The whole map, in order.
+    pub fn download(&self) -> Result<Vec<Surfel>, StageError> {
+        let raw = self.gpu.read(&self.sized.surf[self.cur], &self.sized.staging_surfels, u64::from(self.n) * SURFEL_BYTES)?;
+        let g: Vec<GpuSurfel> = bytemuck::pod_collect_to_vec(&raw);
+        Ok(g.iter().map(Surfel::from).collect())
+    }
+
+    /// Replaces the map.
+    pub fn upload(&mut self, surfels: &[Surfel]) -> Result<(), StageError> {
+        let n = u32::try_from(surfels.len()).map_err(|_| gpu_error("too many surfels"))?;
+        self.reserve(n)?;
+        let g: Vec<GpuSurfel> = surfels.iter().map(GpuSurfel::from).collect();
+        self.gpu.queue.write_buffer(&self.sized.surf[self.cur], 0, bytemuck::cast_slice(&g));
+        self.n = n;
+        Ok(())
+    }
+}
