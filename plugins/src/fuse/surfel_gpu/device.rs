@@ -175,6 +175,27 @@ pub struct Counts {
     pub stable: u32,
 }
 
+/// The kernels of `fuse.wgsl`, in the order of [`KERNELS`].
+#[derive(Debug, Clone, Copy)]
+enum Kernel {
+    ClearZ,
+    IndexDepth,
+    IndexId,
+    Associate,
+    Merge,
+    Keep,
+    ScanBlocks,
+    ScanSums,
+    ScanAdd,
+    Compact,
+    Append,
+    Count,
+    SplatDepth,
+    SplatId,
+    Resolve,
+}
+
+/// The entry points, indexed by [`Kernel`].
 const KERNELS: [&str; 15] = [
     "clear_z",
     "index_depth",
@@ -200,9 +221,8 @@ struct Kernels {
 }
 
 impl Kernels {
-    fn get(&self, name: &str) -> &wgpu::ComputePipeline {
-        let i = KERNELS.iter().position(|k| *k == name).unwrap_or(0);
-        &self.pipelines[i]
+    fn get(&self, kernel: Kernel) -> &wgpu::ComputePipeline {
+        &self.pipelines[kernel as usize]
     }
 }
 
@@ -266,7 +286,6 @@ struct Sized {
     /// Scan buffers: bound in `binds`, held here with them.
     _scan: [wgpu::Buffer; 3],
     binds: [wgpu::BindGroup; 2],
-    staging_surfels: wgpu::Buffer,
 }
 
 /// The map on the device.
@@ -298,13 +317,8 @@ const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE.union(wgpu::Buff
 const STAGING: wgpu::BufferUsages = wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST);
 
 impl DeviceMap {
-    /// An empty map for a `width × height` camera, with room for 4 surfels a pixel at first
-    /// (it grows by doubling).
-    pub fn new(gpu: Arc<Gpu>, width: usize, height: usize) -> Result<Self, StageError> {
-        Self::with_capacity(gpu, width, height, (4 * width * height).max(1024) as u32)
-    }
-
-    /// An empty map with room for `cap` surfels at first.
+    /// An empty map for a `width × height` camera with room for `cap` surfels at first (it
+    /// grows by doubling).
     pub fn with_capacity(gpu: Arc<Gpu>, width: usize, height: usize, cap: u32) -> Result<Self, StageError> {
         let kernels = kernels(&gpu)?;
         let px = (width * height) as u64;
@@ -360,8 +374,7 @@ impl DeviceMap {
             gpu.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("surfel-gpu"), layout: &kernels.layout, entries: &entries })
         };
         let binds = [bind(&surf[0], &surf[1]), bind(&surf[1], &surf[0])];
-        let staging_surfels = buffer(gpu, "staging surfels", bytes, STAGING);
-        Ok(Sized { cap, surf, winner, _scan: [flags, offsets, blocks], binds, staging_surfels })
+        Ok(Sized { cap, surf, winner, _scan: [flags, offsets, blocks], binds })
     }
 
     /// The device.
@@ -433,7 +446,7 @@ impl DeviceMap {
         }
     }
 
-    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: &str, threads: u64) {
+    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: Kernel, threads: u64) {
         let groups = threads.div_ceil(u64::from(WG));
         if groups == 0 {
             return;
@@ -444,9 +457,9 @@ impl DeviceMap {
     }
 
     fn scan(&self, pass: &mut wgpu::ComputePass<'_>, n: u64) {
-        self.dispatch(pass, "scan_blocks", n);
-        self.dispatch(pass, "scan_sums", 1);
-        self.dispatch(pass, "scan_add", n);
+        self.dispatch(pass, Kernel::ScanBlocks, n);
+        self.dispatch(pass, Kernel::ScanSums, 1);
+        self.dispatch(pass, Kernel::ScanAdd, n);
     }
 
     /// Fuses one frame's measurements (in pixel order) at `phase`.
@@ -473,14 +486,14 @@ impl DeviceMap {
         enc.clear_buffer(&self.sized.winner, 0, None);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("fuse 1"), timestamp_writes: None });
-            self.dispatch(&mut pass, "clear_z", px);
-            self.dispatch(&mut pass, "index_depth", n);
-            self.dispatch(&mut pass, "index_id", n);
-            self.dispatch(&mut pass, "associate", u64::from(n_meas));
-            self.dispatch(&mut pass, "merge", n);
-            self.dispatch(&mut pass, "keep", n);
+            self.dispatch(&mut pass, Kernel::ClearZ, px);
+            self.dispatch(&mut pass, Kernel::IndexDepth, n);
+            self.dispatch(&mut pass, Kernel::IndexId, n);
+            self.dispatch(&mut pass, Kernel::Associate, u64::from(n_meas));
+            self.dispatch(&mut pass, Kernel::Merge, n);
+            self.dispatch(&mut pass, Kernel::Keep, n);
             self.scan(&mut pass, n);
-            self.dispatch(&mut pass, "compact", n);
+            self.dispatch(&mut pass, Kernel::Compact, n);
         }
         q.submit([enc.finish()]);
         // 2: the new surfels after the kept ones, and the counts.
@@ -492,8 +505,8 @@ impl DeviceMap {
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("fuse 2"), timestamp_writes: None });
             self.scan(&mut pass, u64::from(n_meas));
-            self.dispatch(&mut pass, "append", u64::from(n_meas));
-            self.dispatch(&mut pass, "count", n + u64::from(n_meas));
+            self.dispatch(&mut pass, Kernel::Append, u64::from(n_meas));
+            self.dispatch(&mut pass, Kernel::Count, n + u64::from(n_meas));
         }
         q.submit([enc.finish()]);
         let raw = self.gpu.read(&self.counters, &self.staging_counters, COUNTERS * 4)?;
@@ -516,10 +529,10 @@ impl DeviceMap {
         let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("predict") });
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("predict"), timestamp_writes: None });
-            self.dispatch(&mut pass, "clear_z", px);
-            self.dispatch(&mut pass, "splat_depth", u64::from(self.n));
-            self.dispatch(&mut pass, "splat_id", u64::from(self.n));
-            self.dispatch(&mut pass, "resolve", px);
+            self.dispatch(&mut pass, Kernel::ClearZ, px);
+            self.dispatch(&mut pass, Kernel::SplatDepth, u64::from(self.n));
+            self.dispatch(&mut pass, Kernel::SplatId, u64::from(self.n));
+            self.dispatch(&mut pass, Kernel::Resolve, px);
         }
         self.gpu.queue.submit([enc.finish()]);
         let raw = self.gpu.read(&self.view, &self.staging_view, px * VIEW_BYTES)?;
@@ -543,7 +556,11 @@ impl DeviceMap {
 
     /// The whole map, in order.
     pub fn download(&self) -> Result<Vec<Surfel>, StageError> {
-        let raw = self.gpu.read(&self.sized.surf[self.cur], &self.sized.staging_surfels, u64::from(self.n) * SURFEL_BYTES)?;
+        // A download is rare (a snapshot, a closure): its staging buffer is made for it rather
+        // than held at the map's capacity.
+        let bytes = u64::from(self.n) * SURFEL_BYTES;
+        let staging = buffer(&self.gpu, "staging surfels", bytes, STAGING);
+        let raw = self.gpu.read(&self.sized.surf[self.cur], &staging, bytes)?;
         let g: Vec<GpuSurfel> = bytemuck::pod_collect_to_vec(&raw);
         Ok(g.iter().map(Surfel::from).collect())
     }

@@ -42,20 +42,18 @@ impl Plugin for SurfelGpu {
     type Params = SurfelCpuParams;
 
     fn build(params: SurfelCpuParams, env: &BuildEnv) -> Result<Self, StageError> {
-        crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
-        let gpu: Arc<Gpu> = gpu()?;
-        let cam = env.rig.camera();
-        let map = DeviceMap::new(gpu, cam.width, cam.height)?;
-        Ok(Self { params, map, now: 0, stats: MapStats::default() })
+        Self::with_capacity(params, env, None)
     }
 }
 
 impl SurfelGpu {
-    /// A map that starts with room for `cap` surfels (tests of its growth).
-    #[cfg(test)]
-    fn with_capacity(params: SurfelCpuParams, env: &BuildEnv, cap: u32) -> Result<Self, StageError> {
+    /// A map that starts with room for `cap` surfels (`None`: 4 a pixel; it grows by doubling).
+    fn with_capacity(params: SurfelCpuParams, env: &BuildEnv, cap: Option<u32>) -> Result<Self, StageError> {
+        crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
+        let gpu: Arc<Gpu> = gpu()?;
         let cam = env.rig.camera();
-        let map = DeviceMap::with_capacity(gpu()?, cam.width, cam.height, cap)?;
+        let cap = cap.unwrap_or_else(|| (4 * cam.width * cam.height).max(1024) as u32);
+        let map = DeviceMap::with_capacity(gpu, cam.width, cam.height, cap)?;
         Ok(Self { params, map, now: 0, stats: MapStats::default() })
     }
 

@@ -71,10 +71,7 @@ fn view_agreement(a: &ModelView, b: &ModelView) -> (f64, usize) {
 
 fn builders(ph: &Phantom, cap: Option<u32>) -> (SurfelGpu, SurfelCpu) {
     let env = BuildEnv::new(rig(ph), None);
-    let g = match cap {
-        Some(cap) => SurfelGpu::with_capacity(params(), &env, cap).unwrap(),
-        None => SurfelGpu::build(params(), &env).unwrap(),
-    };
+    let g = SurfelGpu::with_capacity(params(), &env, cap).unwrap();
     (g, SurfelCpu::build(params(), &env).unwrap())
 }
 
