@@ -5,12 +5,13 @@ use std::path::PathBuf;
 
 use anyhow::{Context as _, anyhow};
 use capsule_slam_framework::config::Config;
-use capsule_slam_framework::io::{Dataset, RunWriter};
-use capsule_slam_framework::phantom::writer::is_complete;
-use capsule_slam_framework::phantom::{PhantomSpec, SizePreset};
-use capsule_slam_framework::pipeline::run::{RunOptions, run};
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::Dataset;
+use capsule_slam_phantom::writer::is_complete;
+use capsule_slam_phantom::{PhantomSpec, SizePreset};
+use capsule_slam_run::RunWriter;
+use capsule_slam_run::{RunOptions, run};
 
 /// Arguments of `bench`.
 #[derive(clap::Args, Debug)]
@@ -40,7 +41,7 @@ fn percentile(v: &mut [f64], q: f64) -> f64 {
     v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1]
 }
 
-pub fn run_bench(args: &BenchArgs) -> anyhow::Result<()> {
+pub fn run_bench(args: &BenchArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
     let registry = crate::registry()?;
     let cache = std::env::var_os("CAPSULE_SLAM_CACHE").map_or_else(|| PathBuf::from(".cache/capsule-slam"), PathBuf::from);
     println!("| size | frames | stage | mean ms | p95 ms |");
@@ -56,7 +57,7 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<()> {
         }
         let config = Config::load(None, &args.set)?;
         let dataset = Dataset::open(&dir, &config.input, None).with_context(|| format!("opening {}", dir.display()))?;
-        let mut pipeline = Pipeline::build(&config, "bench", &registry, &BuildEnv::new(dataset.rig(), Some(dir.clone())))?;
+        let mut pipeline = Pipeline::build(&config, "bench", &registry, &BuildEnv::new(dataset.rig(), Some(dir.clone())).with_gpu(gpu.clone()))?;
         let out = std::env::temp_dir().join(format!("capsule-slam-bench-{}", std::process::id()));
         let mut writer = RunWriter::create(&out, &pipeline.resolved_config().to_toml_string())?;
         let mut records: Vec<FrameRecord> = Vec::new();

@@ -1,14 +1,15 @@
 //! `capsule-slam calibrate-light`: fit `light.toml` (gain, ambient, γ, vignetting) to frames of
 //! a target of known albedo whose geometry the input's depth gives (a plane at a few known
 //! distances is enough; the phantom with `--texture none` works too), see
-//! `capsule_slam_framework::light::fit`.
+//! `capsule_slam_calib::light_fit`.
 
 use std::path::PathBuf;
 
 use anyhow::{Context as _, anyhow, bail};
+use capsule_slam_calib::light_fit::{FitOptions, LightSample, fit_light};
 use capsule_slam_framework::config::InputConfig;
-use capsule_slam_framework::io::{Dataset, read_light_file, write_light_file};
-use capsule_slam_framework::light::fit::{FitOptions, LightSample, fit_light};
+use capsule_slam_framework::files::{read_light_file, write_light_file};
+use capsule_slam_io::Dataset;
 use capsule_slam_plugins::common::maps::{normal_map, vertex_map};
 use nalgebra::{Point3, Vector3};
 

@@ -1,15 +1,17 @@
 //! `capsule-slam calibrate-vignetting`: fit `vignetting.toml` to flat-field frames, images of a
-//! matte uniform target facing the capsule under its own light (frontend digest §D): the frames
+//! matte uniform target facing the capsule under its own light (Goldman 2010, "Vignette and exposure calibration and compensation", IEEE TPAMI 32(12); Kim & Pollefeys 2008): the frames
 //! are linearised and averaged, the target's own cos³α is divided out and the lens-and-light
 //! profile V · μ is fitted as an even polynomial about the principal point
-//! (`capsule_slam_framework::light::vignetting::fit_flat_field`).
+//! (`capsule_slam_calib::fit_flat_field`).
 
 use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
+use capsule_slam_calib::centre_value;
+use capsule_slam_framework::files::{read_camera_file, write_vignetting_file};
 use capsule_slam_framework::frame::Falloff;
-use capsule_slam_framework::io::{images, read_camera_file, write_vignetting_file};
-use capsule_slam_framework::light::vignetting::{RadialProfile, centre_value, profile_falloff, radius2};
+use capsule_slam_framework::light::vignetting::{RadialProfile, profile_falloff, radius2};
+use capsule_slam_io::images;
 
 /// Arguments of `calibrate-vignetting`.
 #[derive(clap::Args, Debug)]
@@ -63,7 +65,7 @@ pub fn run(args: &CalibrateVignettingArgs) -> anyhow::Result<()> {
         }
     }
     let mean: Vec<f64> = sum.iter().map(|s| s / files.len() as f64).collect();
-    let Some(file) = capsule_slam_framework::light::vignetting::fit_flat_field(&mean, &cam, args.gamma, args.degree) else {
+    let Some(file) = capsule_slam_calib::fit_flat_field(&mean, &cam, args.gamma, args.degree) else {
         bail!("the flat field could not be fitted: the frames are black at the principal point or cover too few radii");
     };
     write_vignetting_file(&args.out, &file)?;

@@ -6,12 +6,12 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context as _, anyhow, bail};
+use capsule_slam_eval::depth::{DepthError, depth_error};
 use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
-use capsule_slam_framework::eval::depth::{DepthError, depth_error};
-use capsule_slam_framework::io::Dataset;
 use capsule_slam_framework::registry::{BuildEnv, Stage};
+use capsule_slam_io::Dataset;
 
 /// Arguments of `depth-eval`.
 #[derive(clap::Args, Debug)]
@@ -34,7 +34,7 @@ fn mean(v: &[DepthError], f: impl Fn(&DepthError) -> f64) -> f64 {
     v.iter().map(f).sum::<f64>() / v.len().max(1) as f64
 }
 
-pub fn run(args: &DepthEvalArgs) -> anyhow::Result<()> {
+pub fn run(args: &DepthEvalArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
     let registry = crate::registry()?;
     let config = Config::load(args.config.as_deref(), &args.set)?;
     let dataset = Dataset::open(&args.input, &config.input, config.camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
@@ -42,7 +42,7 @@ pub fn run(args: &DepthEvalArgs) -> anyhow::Result<()> {
         bail!("{} has no depth.txt: depth-eval needs ground-truth depth", args.input.display());
     }
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone()));
+    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_gpu(gpu.clone());
     let mut pre = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     let Stage::DepthEstimator(mut depth) = crate::stages::build(&registry, &resolved, &env, &config.pipeline.depth)? else {
         bail!("{} is not a depth estimator", config.pipeline.depth)

@@ -3,11 +3,11 @@
 use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
-use capsule_slam_framework::eval::report::{EvalOptions, evaluate, table};
-use capsule_slam_framework::eval::rpe::Delta;
-use capsule_slam_framework::eval::{align_trajectory, associate};
+use capsule_slam_eval::report::{EvalOptions, evaluate, table};
+use capsule_slam_eval::rpe::Delta;
+use capsule_slam_eval::{align_trajectory, associate};
 use capsule_slam_framework::geometry::StampedPose;
-use capsule_slam_framework::io::{ply, tum};
+use capsule_slam_io::{ply, tum};
 
 /// Arguments of `eval`.
 #[derive(clap::Args, Debug)]

@@ -9,9 +9,10 @@ use capsule_slam_framework::Rgb8;
 use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
+use capsule_slam_framework::files::read_camera_file;
 use capsule_slam_framework::frame::MASK_SPECULAR;
-use capsule_slam_framework::io::{Dataset, images, read_camera_file};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::{Dataset, images};
 
 /// Arguments of `preprocess`.
 #[derive(clap::Args, Debug)]
@@ -34,7 +35,7 @@ pub struct PreprocessArgs {
     set: Vec<String>,
 }
 
-pub fn run(args: &PreprocessArgs) -> anyhow::Result<()> {
+pub fn run(args: &PreprocessArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
     let registry = crate::registry()?;
     let mut set = vec!["pipeline.preprocess=[\"reflection\", \"vignetting\"]".to_owned()];
     set.extend(args.set.iter().cloned());
@@ -45,7 +46,7 @@ pub fn run(args: &PreprocessArgs) -> anyhow::Result<()> {
     };
     let dataset = Dataset::open(&args.input, &config.input, camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone()));
+    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_gpu(gpu.clone());
     let mut stages = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let rig = dataset.rig();

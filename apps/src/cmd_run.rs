@@ -5,13 +5,14 @@ use std::path::PathBuf;
 
 use anyhow::Context as _;
 use capsule_slam_framework::config::Config;
-use capsule_slam_framework::io::{Dataset, RunWriter};
-use capsule_slam_framework::phantom::PhantomSpec;
-use capsule_slam_framework::phantom::writer::is_complete;
 use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::pipeline::run::{RunOptions, run as run_pipeline};
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Registry, StageKind};
+use capsule_slam_io::Dataset;
+use capsule_slam_phantom::PhantomSpec;
+use capsule_slam_phantom::writer::is_complete;
+use capsule_slam_run::RunWriter;
+use capsule_slam_run::{RunOptions, run as run_pipeline};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Arguments of `run`.
@@ -75,7 +76,7 @@ fn default_phantom(quiet: bool) -> anyhow::Result<PathBuf> {
     Ok(dir)
 }
 
-pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
     let registry = crate::registry()?;
     let mut config = Config::load(args.config.as_deref(), &args.set)?;
     let source = args.config.as_ref().map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
@@ -97,7 +98,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if dataset.dropped_without_depth() > 0 {
         eprintln!("note: {} rgb frames have no depth image within {} s and are skipped", dataset.dropped_without_depth(), config.input.association_tolerance_s);
     }
-    let env = BuildEnv::new(dataset.rig(), Some(input.clone()));
+    let env = BuildEnv::new(dataset.rig(), Some(input.clone())).with_gpu(gpu.clone());
     let mut pipeline = Pipeline::build(&config, &source, &registry, &env)?;
     let out = config.output.dir.clone();
     let mut writer =

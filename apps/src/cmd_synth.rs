@@ -5,8 +5,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::{Context as _, anyhow};
-use capsule_slam_framework::phantom::writer::{contact_sheet, write_sequence};
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_phantom::writer::{contact_sheet, write_sequence};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 use indicatif::ProgressBar;
 
 /// Arguments of `synth`.
@@ -121,8 +121,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         for k in 0..args.flat_field {
             let p = dir.join(format!("{k:06}.png"));
-            capsule_slam_framework::io::images::write_rgb(&p, &phantom.render_flat_field(k, FLAT_FIELD_DISTANCE_M))
-                .with_context(|| format!("writing {}", p.display()))?;
+            capsule_slam_io::images::write_rgb(&p, &phantom.render_flat_field(k, FLAT_FIELD_DISTANCE_M)).with_context(|| format!("writing {}", p.display()))?;
         }
         println!("{} flat-field frames in {}", args.flat_field, dir.display());
     }

@@ -63,17 +63,19 @@ fn main() -> std::process::ExitCode {
     capsule_slam_plugins::link();
     let cli = Cli::parse();
     let _ = PLUGIN_LIBS.set(cli.plugin_libs.clone());
+    // The process's GPU, handed to whatever builds stages; opened only if a stage asks for it.
+    let gpu = capsule_slam_gpu::GpuHandle::new();
     let result = match cli.command {
-        Command::Run(a) => cmd_run::run(&a),
+        Command::Run(a) => cmd_run::run(&a, &gpu),
         Command::Plugins => cmd_plugins::run(),
         Command::Config(a) => cmd_config::run(&a),
         Command::Synth(a) => cmd_synth::run(&a),
         Command::Eval(a) => cmd_eval::run(&a),
-        Command::Bench(a) => cmd_bench::run_bench(&a),
-        Command::DepthEval(a) => cmd_depth_eval::run(&a),
+        Command::Bench(a) => cmd_bench::run_bench(&a, &gpu),
+        Command::DepthEval(a) => cmd_depth_eval::run(&a, &gpu),
         Command::CalibrateLight(a) => cmd_calibrate_light::run(&a),
-        Command::PreprocessEval(a) => cmd_preprocess_eval::run(&a),
-        Command::Preprocess(a) => cmd_preprocess::run(&a),
+        Command::PreprocessEval(a) => cmd_preprocess_eval::run(&a, &gpu),
+        Command::Preprocess(a) => cmd_preprocess::run(&a, &gpu),
         Command::CalibrateVignetting(a) => cmd_calibrate_vignetting::run(&a),
     };
     match result {
@@ -90,7 +92,7 @@ fn registry() -> anyhow::Result<capsule_slam_framework::Registry> {
     use anyhow::Context as _;
     let mut registry = capsule_slam_framework::Registry::from_inventory()?;
     for lib in PLUGIN_LIBS.get().into_iter().flatten() {
-        registry.load_library(lib).with_context(|| format!("--plugin-lib {}", lib.display()))?;
+        capsule_slam_abi::load::load_library(&mut registry, lib).with_context(|| format!("--plugin-lib {}", lib.display()))?;
     }
     Ok(registry)
 }

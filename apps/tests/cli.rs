@@ -124,12 +124,12 @@ fn calibrate_light_recovers_the_phantoms_light() {
     let out = tmp.path().join("fitted.toml");
     let (ok, stdout, err) = output(&["calibrate-light", "--input", input.to_str().unwrap(), "--every", "15", "--out", out.to_str().unwrap()]);
     assert!(ok, "{err}");
-    let truth = capsule_slam_framework::io::read_light_file(&input.join("light.toml")).unwrap();
-    let fit = capsule_slam_framework::io::read_light_file(&out).unwrap();
+    let truth = capsule_slam_framework::files::read_light_file(&input.join("light.toml")).unwrap();
+    let fit = capsule_slam_framework::files::read_light_file(&out).unwrap();
     assert!((fit.gain / truth.gain - 1.0).abs() < 0.03, "{stdout}");
     assert!((fit.gamma - truth.gamma).abs() < 0.05, "{stdout}");
     assert!((fit.ambient - truth.ambient).abs() < 0.005, "{stdout}");
-    let cam = capsule_slam_framework::io::read_camera_file(&input.join("camera.toml")).unwrap().camera();
+    let cam = capsule_slam_framework::files::read_camera_file(&input.join("camera.toml")).unwrap().camera();
     for (u, v) in [(cam.cx, cam.cy), (cam.cx + 60.0, cam.cy), (cam.cx, cam.cy + 90.0)] {
         let ray = nalgebra::Point3::new((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0);
         let profile = |l: &capsule_slam_framework::light::LightModel| l.vignetting_at(&cam, u, v) * l.falloff(&ray);
@@ -157,9 +157,9 @@ fn calibrate_vignetting_recovers_the_phantoms_fall_off_and_preprocess_eval_score
     ]);
     assert!(ok, "{err}");
     // Truth: the light model's V · μ.
-    let truth = capsule_slam_framework::io::read_light_file(&input.join("light.toml")).unwrap();
-    let fit = capsule_slam_framework::io::read_vignetting_file(&out).unwrap();
-    let cam = capsule_slam_framework::io::read_camera_file(&camera).unwrap().camera();
+    let truth = capsule_slam_framework::files::read_light_file(&input.join("light.toml")).unwrap();
+    let fit = capsule_slam_framework::files::read_vignetting_file(&out).unwrap();
+    let cam = capsule_slam_framework::files::read_camera_file(&camera).unwrap().camera();
     use capsule_slam_framework::frame::Falloff;
     for (u, v) in [(cam.cx + 40.0, cam.cy), (cam.cx, cam.cy + 80.0), (cam.cx + 80.0, cam.cy + 60.0)] {
         let (f, t) = (

@@ -4,8 +4,8 @@
 use capsule_slam_benches::{phantom, rig};
 use capsule_slam_framework::context::StageReport;
 
-use capsule_slam_framework::phantom::SizePreset;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimator};
+use capsule_slam_phantom::SizePreset;
 use capsule_slam_plugins::depth::near_light_sfs::{NearLightSfs, NearLightSfsParams};
 use capsule_slam_plugins::depth::tsai_shah::{TsaiShah, TsaiShahParams};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};

@@ -4,23 +4,25 @@
 
 use capsule_slam_benches::{fused_map_of, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::phantom::SizePreset;
 use capsule_slam_framework::{Context, ModelSet};
+use capsule_slam_phantom::SizePreset;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 
 fn fuse(c: &mut Criterion) {
+    // One device for every GPU map of the bench, opened when `surfel-gpu` first asks.
+    let gpu = capsule_slam_gpu::GpuHandle::new();
     for name in ["surfel-cpu", "surfel-gpu"] {
-        fuse_with(c, name);
+        fuse_with(c, name, &gpu);
     }
 }
 
-fn fuse_with(c: &mut Criterion, name: &str) {
+fn fuse_with(c: &mut Criterion, name: &str, gpu: &capsule_slam_gpu::GpuHandle) {
     let mut g = c.benchmark_group(name);
     g.sample_size(20);
     for (size, label) in [(SizePreset::NanEye, "250x250"), (SizePreset::Capsule320, "320x320")] {
         let p = phantom(size, 300);
         let rig = rig(&p);
-        let mut fuser = match fused_map_of(name, &p, 70..100) {
+        let mut fuser = match fused_map_of(name, &p, 70..100, gpu) {
             Ok(f) => f,
             Err(e) => {
                 assert!(std::env::var("CAPSULE_SLAM_REQUIRE_GPU").as_deref() != Ok("1"), "CAPSULE_SLAM_REQUIRE_GPU=1 and {name}: {e}");

@@ -1,8 +1,8 @@
 //! Input/output costs that every run pays: decoding one 320×320 frame (colour PNG + 16-bit
 //! depth PNG) and writing a 100k-surfel map.
 
-use capsule_slam_framework::io::{images, ply};
 use capsule_slam_framework::{DepthMap, Rgb8, Surfel, SurfelSet};
+use capsule_slam_io::{images, ply};
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
 

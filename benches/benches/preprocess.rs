@@ -3,8 +3,8 @@
 //! (issue 6's goal: ≤ 2 ms each). Every iteration works on a fresh copy of the frame.
 
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 use capsule_slam_framework::{CameraFrame, Context, Preprocessor};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 use capsule_slam_plugins::preprocess::reflection::{Reflection, ReflectionParams};
 use capsule_slam_plugins::preprocess::vignetting::{FalloffSource, Vignetting, VignettingParams};
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};

@@ -3,9 +3,9 @@
 
 use capsule_slam_benches::{build, fused_map, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::phantom::SizePreset;
 use capsule_slam_framework::registry::Stage;
 use capsule_slam_framework::{Context, ModelSet};
+use capsule_slam_phantom::SizePreset;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 
 fn track(c: &mut Criterion) {

@@ -3,7 +3,7 @@
 
 use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::frame::RgbdFrame;
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 
 /// Keeps the plugin registrations linked into every bench binary.
 pub fn link() {
@@ -37,17 +37,22 @@ pub fn build(name: &str, p: &Phantom) -> capsule_slam_framework::registry::Stage
 
 /// A `surfel-cpu` map fused from `frames` of `p` at their ground-truth poses.
 pub fn fused_map(p: &Phantom, frames: std::ops::Range<usize>) -> Box<dyn capsule_slam_framework::Fuser> {
-    fused_map_of("surfel-cpu", p, frames).unwrap_or_else(|e| panic!("{e}"))
+    fused_map_of("surfel-cpu", p, frames, &capsule_slam_gpu::GpuHandle::new()).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// A map of the fuser `name` fused from `frames` of `p` at their ground-truth poses, or why it
-/// could not be built (e.g. `surfel-gpu` without a GPU adapter).
-pub fn fused_map_of(name: &str, p: &Phantom, frames: std::ops::Range<usize>) -> Result<Box<dyn capsule_slam_framework::Fuser>, String> {
+/// could not be built (e.g. `surfel-gpu` without a GPU adapter); a GPU fuser runs on `gpu`.
+pub fn fused_map_of(
+    name: &str,
+    p: &Phantom,
+    frames: std::ops::Range<usize>,
+    gpu: &capsule_slam_gpu::GpuHandle,
+) -> Result<Box<dyn capsule_slam_framework::Fuser>, String> {
     link();
     let rig = rig(p);
     let registry = capsule_slam_framework::Registry::from_inventory().map_err(|e| e.to_string())?;
     let entry = registry.get(name).ok_or_else(|| format!("{name} is not registered"))?;
-    let env = capsule_slam_framework::registry::BuildEnv::new(rig.clone(), None);
+    let env = capsule_slam_framework::registry::BuildEnv::new(rig.clone(), None).with_gpu(gpu.clone());
     let capsule_slam_framework::registry::Stage::Fuser(mut fuser) = entry.build(&toml::Table::new(), &env).map_err(|e| format!("building {name}: {e}"))? else {
         return Err(format!("{name} is not a fuser"));
     };

@@ -2,7 +2,7 @@
 
 use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::frame::RgbdFrame;
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 
 /// A small phantom (NanEye size) of `frames` frames of a preset, noise-free unless asked.
 pub fn phantom(preset: u8, frames: usize, noise: f64) -> Phantom {

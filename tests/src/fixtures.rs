@@ -4,9 +4,10 @@
 use std::io::Write;
 use std::path::Path;
 
+use capsule_slam_framework::files::write_camera_file;
 use capsule_slam_framework::geometry::{StampedPose, exp_se3};
-use capsule_slam_framework::io::{images, tum, write_camera_file};
 use capsule_slam_framework::{DepthMap, Iso3, Rgb8, camera::CameraFile};
+use capsule_slam_io::{images, tum};
 use nalgebra::{Point3, Vector6};
 
 /// A tiny camera (48×40).

@@ -5,12 +5,13 @@
 #![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
 
 use capsule_slam_framework::config::Config;
-use capsule_slam_framework::io::{Dataset, RunWriter};
-use capsule_slam_framework::phantom::writer::write_sequence;
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::pipeline::run::{RunOptions, run};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::Dataset;
+use capsule_slam_phantom::writer::write_sequence;
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_run::RunWriter;
+use capsule_slam_run::{RunOptions, run};
 use capsule_slam_tests::stages::test_registry;
 
 #[test]
@@ -20,7 +21,7 @@ fn the_map_learns_the_albedo_and_gives_it_back() {
     // Untextured: the true luminance albedo is the phantom's base albedo everywhere.
     let ph = Phantom::new(PhantomSpec { frames: 24, size: SizePreset::NanEye, texture: false, specular: 0.0, noise: 0.0, ..PhantomSpec::preset(1) }).unwrap();
     write_sequence(&ph, &data, &|_| {}).unwrap();
-    let true_albedo = capsule_slam_framework::image::luminance(capsule_slam_framework::phantom::texture::BASE_ALBEDO);
+    let true_albedo = capsule_slam_framework::image::luminance(capsule_slam_phantom::texture::BASE_ALBEDO);
     // The estimator assumes 10 % too bright a tissue; the observed albedo is what the solved
     // surface needs, so the map must hold the assumed value (the circularity the README
     // describes), not the truth. The depth comes out about 5 % too far (√1.1) on top of its

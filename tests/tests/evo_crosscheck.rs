@@ -4,10 +4,10 @@
 
 use std::process::Command;
 
-use capsule_slam_framework::eval::rpe::{Delta, rpe};
-use capsule_slam_framework::eval::{ate, path_length_m};
+use capsule_slam_eval::rpe::{Delta, rpe};
+use capsule_slam_eval::{ate, path_length_m};
 use capsule_slam_framework::geometry::{StampedPose, exp_se3};
-use capsule_slam_framework::io::tum;
+use capsule_slam_io::tum;
 use nalgebra::Vector6;
 
 const EVO: &str = r#"

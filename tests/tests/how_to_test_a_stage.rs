@@ -5,8 +5,8 @@
 use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::config::InputConfig;
 use capsule_slam_framework::context::{Context, StageReport};
-use capsule_slam_framework::io::Dataset;
 use capsule_slam_framework::registry::{BuildEnv, Stage};
+use capsule_slam_io::Dataset;
 use capsule_slam_tests::{fixtures, stages::test_registry};
 
 #[test]

@@ -4,12 +4,13 @@
 #![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
 
 use capsule_slam_framework::config::Config;
-use capsule_slam_framework::io::{Dataset, RunWriter, Summary, ply, tum};
-use capsule_slam_framework::phantom::writer::write_sequence;
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
-use capsule_slam_framework::pipeline::run::{RunOptions, run};
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::{Dataset, ply, tum};
+use capsule_slam_phantom::writer::write_sequence;
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_run::{RunOptions, run};
+use capsule_slam_run::{RunWriter, Summary};
 use capsule_slam_tests::stages::test_registry;
 
 fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Summary, Vec<FrameRecord>) {

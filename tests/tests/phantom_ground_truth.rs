@@ -2,12 +2,14 @@
 //! oracle pipeline reproduces its trajectory, and a map of its exact depth matches its surface.
 
 use capsule_slam_framework::config::Config;
-use capsule_slam_framework::io::{Dataset, RunWriter, ply, read_light_file};
-use capsule_slam_framework::phantom::writer::{is_complete, surface_frames, write_sequence};
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_framework::files::read_light_file;
 use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::pipeline::run::{RunOptions, run};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::{Dataset, ply};
+use capsule_slam_phantom::writer::{is_complete, surface_frames, write_sequence};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_run::RunWriter;
+use capsule_slam_run::{RunOptions, run};
 use capsule_slam_tests::stages::test_registry;
 
 fn spec(frames: usize, deform_mm: f64) -> PhantomSpec {

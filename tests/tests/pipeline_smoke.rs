@@ -3,10 +3,11 @@
 #![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
 
 use capsule_slam_framework::config::{Config, InitialPose};
-use capsule_slam_framework::io::{Dataset, RunWriter, ply, tum};
 use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::pipeline::run::{RunOptions, run};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::{Dataset, ply, tum};
+use capsule_slam_run::RunWriter;
+use capsule_slam_run::{RunOptions, run};
 use capsule_slam_tests::{fixtures, stages::test_registry};
 
 fn config(extra: &[&str]) -> Config {
@@ -15,7 +16,7 @@ fn config(extra: &[&str]) -> Config {
     Config::load(None, &sets).unwrap()
 }
 
-fn run_on(dir: &std::path::Path, out: &std::path::Path, cfg: &Config) -> Result<capsule_slam_framework::io::Summary, capsule_slam_framework::PipelineError> {
+fn run_on(dir: &std::path::Path, out: &std::path::Path, cfg: &Config) -> Result<capsule_slam_run::Summary, capsule_slam_framework::PipelineError> {
     let registry = test_registry();
     let ds = Dataset::open(dir, &cfg.input, None).unwrap();
     let env = BuildEnv::new(ds.rig(), Some(dir.to_owned()));

@@ -1,7 +1,7 @@
 //! `map.ply` written and read back equal.
 
-use capsule_slam_framework::io::ply;
 use capsule_slam_framework::{Surfel, SurfelSet};
+use capsule_slam_io::ply;
 use nalgebra::{Point3, Vector3};
 use proptest::prelude::*;
 

@@ -7,13 +7,14 @@
 
 use capsule_slam_framework::SurfelSet;
 use capsule_slam_framework::config::Config;
-use capsule_slam_framework::io::{Dataset, RunWriter};
-use capsule_slam_framework::phantom::writer::write_sequence;
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 use capsule_slam_framework::pipeline::FrameRecord;
 use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::pipeline::run::{RunOptions, run};
 use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::Dataset;
+use capsule_slam_phantom::writer::write_sequence;
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_run::RunWriter;
+use capsule_slam_run::{RunOptions, run};
 use capsule_slam_tests::stages::test_registry;
 
 fn run_with(data: &std::path::Path, out: &std::path::Path, set: &[&str]) -> (Vec<FrameRecord>, SurfelSet) {

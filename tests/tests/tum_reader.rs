@@ -2,7 +2,7 @@
 //! file and line.
 
 use capsule_slam_framework::config::InputConfig;
-use capsule_slam_framework::io::Dataset;
+use capsule_slam_io::Dataset;
 use capsule_slam_tests::fixtures;
 
 fn open(dir: &std::path::Path) -> Result<Dataset, String> {
@@ -80,7 +80,7 @@ fn a_wrong_image_size_is_reported() {
     fixtures::write_dataset(tmp.path(), 2);
     let mut cam = fixtures::camera();
     cam.width = 50;
-    capsule_slam_framework::io::write_camera_file(&tmp.path().join("camera.toml"), &cam).unwrap();
+    capsule_slam_framework::files::write_camera_file(&tmp.path().join("camera.toml"), &cam).unwrap();
     let e = open(tmp.path()).unwrap().load(0).unwrap_err().to_string();
     assert!(e.contains("48×40") && e.contains("50×40"), "{e}");
 }
@@ -90,7 +90,7 @@ fn a_plain_image_folder_is_accepted() {
     let tmp = tempfile::tempdir().unwrap();
     fixtures::write_dataset(tmp.path(), 3);
     let imgs = tmp.path().join("rgb");
-    capsule_slam_framework::io::write_camera_file(&imgs.join("camera.toml"), &fixtures::camera()).unwrap();
+    capsule_slam_framework::files::write_camera_file(&imgs.join("camera.toml"), &fixtures::camera()).unwrap();
     let cfg = InputConfig { frame_rate_hz: 10.0, ..InputConfig::default() };
     let ds = Dataset::open(&imgs, &cfg, None).unwrap();
     assert_eq!(ds.len(), 3);
@@ -106,7 +106,7 @@ fn a_round_field_of_view_becomes_an_out_of_view_mask() {
     fixtures::write_dataset(tmp.path(), 1);
     let mut cam = fixtures::camera();
     cam.fov_radius_px = Some(15.0);
-    capsule_slam_framework::io::write_camera_file(&tmp.path().join("camera.toml"), &cam).unwrap();
+    capsule_slam_framework::files::write_camera_file(&tmp.path().join("camera.toml"), &cam).unwrap();
     let f = open(tmp.path()).unwrap().load(0).unwrap();
     let m = f.masks.get(capsule_slam_framework::frame::MASK_OUT_OF_VIEW).unwrap();
     assert!(m.at(0, 0) && !m.at(24, 20));

@@ -1,9 +1,9 @@
 //! `example-gamma`: undoes a display gamma, `I_linear = 255 · (I / 255)^γ`, so that later
 //! stages see intensities proportional to radiance (shape from shading assumes a linear
-//! camera; frontend.md: capsule videos are gamma-encoded), and masks saturated pixels, whose
+//! camera: capsule videos are gamma-encoded, as any sRGB video), and masks saturated pixels, whose
 //! radiance is unknown.
 
-use capsule_slam_framework::abi::export::{LibraryPlugin, LibraryPreprocessor};
+use capsule_slam_abi::export::{LibraryPlugin, LibraryPreprocessor};
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::{Mask, Rgb8};
 

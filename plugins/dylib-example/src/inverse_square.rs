@@ -1,11 +1,11 @@
 //! `example-inverse-square`: depth from brightness alone. A point light at the camera lights
 //! a Lambertian wall of uniform albedo that faces it with irradiance falling as 1/z², so
 //! `I = I_ref · (z_ref / z)²` and `z = z_ref · √(I_ref / I)` (the inverse-square term of
-//! near-light shape from shading, frontend.md, without its shading term: every pixel is taken
+//! near-light shape from shading (Okatani & Deguchi 1997) without its shading term: every pixel is taken
 //! to face the light). A baseline for real shape from shading, and an example of a
 //! depth-estimator library plugin.
 
-use capsule_slam_framework::abi::export::{LibraryDepthEstimator, LibraryPlugin};
+use capsule_slam_abi::export::{LibraryDepthEstimator, LibraryPlugin};
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::{DepthMap, Rgb8, intensity_ntsc};
 

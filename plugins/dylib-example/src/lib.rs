@@ -1,4 +1,4 @@
-//! An example plugin library for capsule-slam's C ABI ([`capsule_slam_framework::abi`]),
+//! An example plugin library for capsule-slam's C ABI ([`capsule_slam_abi`]),
 //! built as a `cdylib` and loaded at run time:
 //!
 //! ```sh
@@ -9,7 +9,7 @@
 //!
 //! Copy this crate to start a plugin of your own: one file per plugin, parameters declared
 //! with `plugin_params!` (validated by the host like a linked plugin's), and the list of
-//! exported types in [`export_plugins!`](capsule_slam_framework::export_plugins) below.
+//! exported types in [`export_plugins!`](capsule_slam_abi::export_plugins) below.
 
 mod gamma;
 mod inverse_square;
@@ -17,4 +17,4 @@ mod inverse_square;
 pub use gamma::Gamma;
 pub use inverse_square::InverseSquare;
 
-capsule_slam_framework::export_plugins!(preprocessor Gamma, depth_estimator InverseSquare);
+capsule_slam_abi::export_plugins!(preprocessor Gamma, depth_estimator InverseSquare);

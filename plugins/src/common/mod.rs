@@ -2,7 +2,6 @@
 //! depth smoothing, intensity images and image pyramids. Stages never call each other; they
 //! call these functions.
 
-pub mod gpu;
 pub mod maps;
 pub mod pyramid;
 pub mod sparse_llt;

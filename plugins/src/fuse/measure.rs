@@ -8,7 +8,7 @@ use capsule_slam_framework::{Context, Iso3};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
-use super::surfel_cpu::SurfelCpuParams;
+use super::surfel_params::SurfelParams;
 use super::surfel_rules::{Measurement, confidence, radius};
 use crate::common::maps::{GeometryParams, geometry, normal, vertex};
 
@@ -33,7 +33,7 @@ pub struct PixelMeasurement {
 
 /// The measurements of one frame at `t_world_cam`: one pixel in `subsample`² (rotating with
 /// the frame index) with a valid vertex and normal. Files `ms_maps`.
-pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, p: &SurfelCpuParams, ctx: &mut Context) -> Vec<PixelMeasurement> {
+pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, p: &SurfelParams, ctx: &mut Context) -> Vec<PixelMeasurement> {
     let clock = std::time::Instant::now();
     let g = geometry(
         frame,
@@ -54,9 +54,15 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
     let half_diag = cam.half_diagonal_px() as f32;
     let f_mean = (0.5 * (cam.fx + cam.fy)) as f32;
     let t = t_world_cam.cast::<f32>();
-    // An albedo image of another size than the depth is ignored (a plugin's bug, not the
-    // map's to crash on).
-    let albedo = frame.albedo.as_ref().filter(|a| a.size() == (w, h));
+    // An albedo image of another size than the depth is left out, with a warning naming it
+    // (a depth estimator's bug, not the map's to crash on).
+    let albedo = frame.albedo.as_ref().filter(|a| {
+        let fits = a.size() == (w, h);
+        if !fits {
+            ctx.warn(format!("frame {}: the albedo image is {:?} but the depth {w}×{h}: the frame's albedo is not fused", frame.index, a.size()));
+        }
+        fits
+    });
     let out = (0..h)
         .into_par_iter()
         .filter(|y| y % step == phase)

@@ -1,12 +1,12 @@
 //! The surfel rules as pure functions, shared by every surfel fuser (a GPU fuser mirrors them
 //! line for line). Sources: Keller et al. 2013, "Real-time 3D reconstruction in dynamic scenes
 //! using point-based fusion" (3DV), and ElasticFusion's shaders (Whelan et al. 2016, IJRR,
-//! doi:10.1177/0278364916669237) as digested in `shared/design/elasticfusion.md` §3.
+//! doi:10.1177/0278364916669237), Sec. 3.
 
 use capsule_slam_framework::Surfel;
 use capsule_slam_framework::camera::PinholeCamera;
 
-use super::surfel_cpu::SurfelCpuParams;
+use super::surfel_params::SurfelParams;
 use nalgebra::{Point3, Vector3};
 
 /// Confidence of a new measurement from its pixel's distance to the principal point:
@@ -99,7 +99,7 @@ pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
 /// Reactivates, after a loop closure, the stable inactive surfels seen from the corrected
 /// pose `t_world_cam` (inside the depth range and the field of view): their last sighting
 /// becomes `now` (ElasticFusion marks the matched inactive surfels active). Returns how many.
-pub fn reactivate(surfels: &mut [Surfel], t_world_cam: &capsule_slam_framework::Iso3, cam: &PinholeCamera, now: u32, p: &SurfelCpuParams) -> usize {
+pub fn reactivate(surfels: &mut [Surfel], t_world_cam: &capsule_slam_framework::Iso3, cam: &PinholeCamera, now: u32, p: &SurfelParams) -> usize {
     let t_cam_world = t_world_cam.inverse().cast::<f32>();
     let (stable, dt, lo, hi) = (p.stable_confidence, p.delta_t, p.min_depth_m, p.max_depth_m);
     let mut reactivated = 0usize;

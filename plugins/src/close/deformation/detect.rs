@@ -1,5 +1,5 @@
 //! Local loop detection: registering the active model to the inactive one and checking the
-//! result (ElasticFusion §5, with organ-scale thresholds), and the surface constraints of an
+//! result (ElasticFusion, Whelan et al. 2016, Sec. 5, with organ-scale thresholds), and the surface constraints of an
 //! accepted closure.
 
 use capsule_slam_framework::camera::PinholeCamera;
@@ -7,8 +7,8 @@ use capsule_slam_framework::deformation::SurfelTime;
 use capsule_slam_framework::frame::{DepthSource, Masks};
 use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus};
 
-use super::DeformationParams;
 use super::graph::Constraint;
+use super::params::{DeformationParams, Reference};
 use crate::track::icp_rgb::{IcpRgb, IcpRgbParams, MotionModel, RgbReference};
 
 /// The outcome of registering the active model to the inactive one.
@@ -113,18 +113,6 @@ pub fn register_models(
     Ok(Registration { overlap, t_est: Some(tr.t_world_cam), accepted: rejected.is_none().then_some(tr.t_world_cam), rejected })
 }
 
-/// Which model stays where it is at a closure.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Reference {
-    /// The older, inactive model (ElasticFusion: drift is in the newer part): the active
-    /// surface and the camera move onto it.
-    Old,
-    /// The recent, active model (a deforming organ: the current view is its current shape):
-    /// the inactive surface moves onto it and the camera stays.
-    Recent,
-}
-
 /// One surface sample of a closure: a pixel where both models have a surface.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
@@ -175,9 +163,8 @@ pub fn median_t0(samples: &[Sample]) -> Option<u32> {
 /// point `p` to `C p` and (with `pins`) holds `C p` at the inactive surfel's time;
 /// `Reference::Recent` moves each inactive point `q` to `C⁻¹ q` and holds the active point `p`.
 /// Active points carry the current time `now` (ElasticFusion), inactive ones the time of the
-/// surfel they sample. (Active points at their surfels' creation times instead, which may
-/// be old for a surface still in view: phantom preset 5, sensor depth, `delta_t = 60`: ATE 0.51
-/// → 1.91 mm.)
+/// surfel they sample (not their surfels' creation times, which may be old for a surface still
+/// in view: `docs/results/loop-closure.md`).
 pub fn constraints(samples: &[Sample], correction: impl Fn(u32) -> Iso3, now: u32, pins: bool, reference: Reference) -> Vec<Constraint> {
     let mut out = Vec::new();
     for s in samples {

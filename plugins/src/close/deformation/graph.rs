@@ -1,5 +1,5 @@
 //! The embedded deformation graph (Sumner, Schmid and Pauly 2007) and its optimisation, as
-//! ElasticFusion builds it (`shared/design/elasticfusion.md` §4): 12 unknowns per node (the 3×3
+//! ElasticFusion builds it (Whelan et al. 2016, Sec. 4; Sumner et al. 2007): 12 unknowns per node (the 3×3
 //! affine R, column-major, and the translation t), the energy
 //!
 //! `E = w_rot E_rot + w_reg E_reg + w_con E_con`
@@ -249,7 +249,28 @@ impl Graph {
         if n == 0 {
             return Ok(Solution { energy_before: before, energy_after: before, factorisations: 0 });
         }
-        // The pattern: every pair of unknowns that share a residual, plus the diagonal.
+        let mut normal = self.normal_pattern(w, n)?;
+        let mut llt = SparseLlt::new(normal.a.symbolic(), SIMPLICIAL).map_err(solver_error)?;
+        let mut current = before;
+        let mut factorisations = 0;
+        for _ in 0..w.iterations {
+            let g = self.assemble(w, &mut normal);
+            llt.factorize(normal.a.as_ref()).map_err(solver_error)?;
+            factorisations += 1;
+            let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
+            llt.solve_in_place(&mut step).map_err(solver_error)?;
+            let improved = self.line_search(w, &step, &mut current);
+            if !improved || current < 1e-18 {
+                break;
+            }
+        }
+        Ok(Solution { energy_before: before, energy_after: current, factorisations })
+    }
+
+    /// The sparsity pattern of JᵀJ (every pair of unknowns that share a residual, plus the
+    /// diagonal) and where each product of a row's Jacobian entries lands in it, in visiting
+    /// order: the rows' structure never changes, so the searches are done once per graph.
+    fn normal_pattern(&self, w: &GraphWeights, n: usize) -> Result<NormalPattern, StageError> {
         let mut pairs: Vec<(usize, usize)> = (0..n).map(|k| (k, k)).collect();
         self.visit(w, |_, row| {
             for &(a, _) in row {
@@ -263,16 +284,13 @@ impl Graph {
         pairs.sort_unstable_by_key(|&(r, c)| (c, r));
         pairs.dedup();
         let trips: Vec<Triplet<usize, usize, f64>> = pairs.iter().map(|&(r, c)| Triplet::new(r, c, 0.0)).collect();
-        let mut a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trips).map_err(solver_error)?;
-        let mut llt = SparseLlt::new(a.symbolic(), SIMPLICIAL).map_err(solver_error)?;
+        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trips).map_err(solver_error)?;
         let col_ptr: Vec<usize> = a.symbolic().col_ptr().to_vec();
         let row_idx: Vec<usize> = a.symbolic().row_idx().to_vec();
         let slot = |r: usize, c: usize| -> usize {
             let (lo, hi) = (col_ptr[c], col_ptr[c + 1]);
             lo + row_idx[lo..hi].partition_point(|&x| x < r)
         };
-        // Where each product of a row's Jacobian entries lands in the matrix, in visiting order:
-        // the rows' structure never changes, so the searches are done once.
         let mut slots = Vec::new();
         self.visit(w, |_, row| {
             for &(i, _) in row {
@@ -284,53 +302,61 @@ impl Graph {
             }
         });
         let diag: Vec<usize> = (0..n).map(|k| slot(k, k)).collect();
-        let mut current = before;
-        let mut factorisations = 0;
-        for _ in 0..w.iterations {
-            let vals = a.val_mut();
-            vals.iter_mut().for_each(|v| *v = 0.0);
-            let mut g = vec![0.0; n];
-            let mut next = slots.iter();
-            self.visit(w, |r, row| {
-                for &(i, ji) in row {
-                    g[i] += ji * r;
-                    for &(k, jk) in row {
-                        if i >= k
-                            && let Some(&s) = next.next()
-                        {
-                            vals[s] += ji * jk;
-                        }
+        Ok(NormalPattern { a, slots, diag })
+    }
+
+    /// Fills JᵀJ (lower triangle) into the pattern's values and returns the gradient Jᵀr.
+    fn assemble(&self, w: &GraphWeights, normal: &mut NormalPattern) -> Vec<f64> {
+        let n = normal.diag.len();
+        let vals = normal.a.val_mut();
+        vals.iter_mut().for_each(|v| *v = 0.0);
+        let mut g = vec![0.0; n];
+        let mut next = normal.slots.iter();
+        self.visit(w, |r, row| {
+            for &(i, ji) in row {
+                g[i] += ji * r;
+                for &(k, jk) in row {
+                    if i >= k
+                        && let Some(&s) = next.next()
+                    {
+                        vals[s] += ji * jk;
                     }
                 }
-            });
-            // A tiny Levenberg term keeps nodes without constraints or edges solvable.
-            for &s in &diag {
-                vals[s] += 1e-9;
             }
-            llt.factorize(a.as_ref()).map_err(solver_error)?;
-            factorisations += 1;
-            let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
-            llt.solve_in_place(&mut step).map_err(solver_error)?;
-            let mut scale = 1.0;
-            let mut improved = false;
-            for _ in 0..5 {
-                self.shift(&step, scale);
-                let e = self.energy(w);
-                if e.is_finite() && e < current {
-                    let small = current - e < 1e-9 * current.max(1e-300);
-                    current = e;
-                    improved = !small;
-                    break;
-                }
-                self.shift(&step, -scale);
-                scale *= 0.5;
-            }
-            if !improved || current < 1e-18 {
-                break;
-            }
+        });
+        // A tiny Levenberg term keeps nodes without constraints or edges solvable.
+        for &s in &normal.diag {
+            vals[s] += 1e-9;
         }
-        Ok(Solution { energy_before: before, energy_after: current, factorisations })
+        g
     }
+
+    /// Takes `step`, halved up to four times until E falls below `current` (updated); false
+    /// when no step lowered E by more than a relative 1e-9.
+    fn line_search(&mut self, w: &GraphWeights, step: &[f64], current: &mut f64) -> bool {
+        let mut scale = 1.0;
+        for _ in 0..5 {
+            self.shift(step, scale);
+            let e = self.energy(w);
+            if e.is_finite() && e < *current {
+                let small = *current - e < 1e-9 * current.max(1e-300);
+                *current = e;
+                return !small;
+            }
+            self.shift(step, -scale);
+            scale *= 0.5;
+        }
+        false
+    }
+}
+
+/// The normal equations' sparsity pattern and where each Jacobian product lands in it.
+struct NormalPattern {
+    a: SparseColMat<usize, f64>,
+    /// Value slot of each lower-triangle product, in [`Graph::visit`] order.
+    slots: Vec<usize>,
+    /// Value slot of each diagonal entry.
+    diag: Vec<usize>,
 }
 
 /// What an optimisation did.

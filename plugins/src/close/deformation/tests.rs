@@ -5,9 +5,9 @@ use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::frame::Masks;
 use capsule_slam_framework::map::{MapStats, ModelSet, ModelView, Surfel, SurfelSet};
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 use capsule_slam_framework::stage::{FuseStats, LoopClosure, LoopInput};
 use capsule_slam_framework::{Context, Fuser, Iso3, LoopCloser, RgbdFrame, StageError};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
 use super::{DeformationCloser, DeformationParams, Reference};

@@ -3,7 +3,7 @@
 //! Unknown: the log depth ζ = ln z on a grid of cells of `cell_px` pixels inside the field of
 //! view. A cell's surface point is `P = e^ζ (x, y, 1)` ((x, y) its normalised ray), its normal
 //! comes from central differences of the neighbouring cells' points (one-sided at the border),
-//! and the near-light image irradiance equation (frontend digest §A7; Prados & Faugeras 2005,
+//! and the near-light image irradiance equation (Prados & Faugeras 2005,
 //! "Shape from shading: a well-posed problem?", Eq. 3 with the 1/r² term) becomes one residual
 //! per cell,
 //!
@@ -279,52 +279,13 @@ pub(super) fn solve(
     let mut factorisations = 0;
     let n = grid.cells.len();
     let mut a = grid.pattern.clone();
-    let col_ptr: Vec<usize> = a.symbolic().col_ptr().to_vec();
-    let row_idx: Vec<usize> = a.symbolic().row_idx().to_vec();
-    let slot = |r: usize, c: usize| -> usize {
-        let (lo, hi) = (col_ptr[c], col_ptr[c + 1]);
-        lo + row_idx[lo..hi].partition_point(|&x| x < r)
-    };
-    let lambda2 = settings.smoothness * settings.smoothness;
-    let cost = |zeta: &[f64]| cost(grid, photometry, data, zeta, settings.smoothness);
-    let diag: Vec<usize> = (0..n).map(|k| slot(k, k)).collect();
+    let slots = Slots { col_ptr: a.symbolic().col_ptr().to_vec(), row_idx: a.symbolic().row_idx().to_vec() };
+    let diag: Vec<usize> = (0..n).map(|k| slots.at(k, k)).collect();
     let mut mu = 1e-4;
-    let mut current = cost(zeta);
+    let mut current = cost(grid, photometry, data, zeta, settings.smoothness);
     for _ in 0..settings.iterations {
-        let vals = a.val_mut();
-        vals.iter_mut().for_each(|v| *v = 0.0);
-        let mut g = vec![0.0; n];
-        for (c, &d) in data.iter().enumerate() {
-            if d.weight <= 0.0 {
-                continue;
-            }
-            let (r, jac) = photometry.linearise(&grid.cells, zeta, c, d.ln_e);
-            let st = grid.cells[c].stencil;
-            for i in 0..5 {
-                if jac[i] == 0.0 {
-                    continue;
-                }
-                g[st[i]] += d.weight * jac[i] * r;
-                for k in 0..5 {
-                    if st[i] >= st[k] && jac[k] != 0.0 {
-                        vals[slot(st[i], st[k])] += d.weight * jac[i] * jac[k];
-                    }
-                }
-            }
-        }
-        for row in &grid.smooth_rows {
-            let coef = [1.0, -2.0, 1.0];
-            let r = zeta[row[0]] - 2.0 * zeta[row[1]] + zeta[row[2]];
-            for i in 0..3 {
-                g[row[i]] += lambda2 * coef[i] * r;
-                for k in 0..3 {
-                    if row[i] >= row[k] {
-                        vals[slot(row[i], row[k])] += lambda2 * coef[i] * coef[k];
-                    }
-                }
-            }
-        }
-        let base: Vec<f64> = diag.iter().map(|&s| vals[s]).collect();
+        let g = assemble(grid, photometry, data, zeta, settings.smoothness, &slots, a.val_mut());
+        let base: Vec<f64> = diag.iter().map(|&s| a.val_mut()[s]).collect();
         // Levenberg-Marquardt: grow the damping until the step lowers the cost.
         let mut accepted = false;
         let mut converged = false;
@@ -338,7 +299,7 @@ pub(super) fn solve(
             let rhs = Mat::from_fn(n, 1, |i, _| -g[i]);
             let step = llt.solve(&rhs);
             let trial: Vec<f64> = (0..n).map(|i| zeta[i] + step[(i, 0)]).collect();
-            let c = cost(&trial);
+            let c = cost(grid, photometry, data, &trial, settings.smoothness);
             if c.is_finite() && c < current {
                 zeta.copy_from_slice(&trial);
                 converged = c > current * (1.0 - settings.tolerance);
@@ -354,6 +315,58 @@ pub(super) fn solve(
         }
     }
     Ok(((0..n).map(|c| if data[c].weight > 0.0 { photometry.residual(&grid.cells, zeta, c, data[c].ln_e) } else { 0.0 }).collect(), factorisations))
+}
+
+/// Where entry (r, c) of the lower triangle lives in a column-major sparse pattern.
+struct Slots {
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+}
+
+impl Slots {
+    fn at(&self, r: usize, c: usize) -> usize {
+        let (lo, hi) = (self.col_ptr[c], self.col_ptr[c + 1]);
+        lo + self.row_idx[lo..hi].partition_point(|&x| x < r)
+    }
+}
+
+/// Fills the normal equations JᵀWJ (lower triangle, into `vals`) of the weighted cell
+/// residuals and the curvature prior `λ² Σ (Δ²ζ)²` at `zeta`; returns the gradient JᵀWr.
+fn assemble(grid: &Grid, photometry: &Photometry, data: &[CellData], zeta: &[f64], smoothness: f64, slots: &Slots, vals: &mut [f64]) -> Vec<f64> {
+    vals.iter_mut().for_each(|v| *v = 0.0);
+    let mut g = vec![0.0; grid.cells.len()];
+    for (c, &d) in data.iter().enumerate() {
+        if d.weight <= 0.0 {
+            continue;
+        }
+        let (r, jac) = photometry.linearise(&grid.cells, zeta, c, d.ln_e);
+        let st = grid.cells[c].stencil;
+        for i in 0..5 {
+            if jac[i] == 0.0 {
+                continue;
+            }
+            g[st[i]] += d.weight * jac[i] * r;
+            for k in 0..5 {
+                if st[i] >= st[k] && jac[k] != 0.0 {
+                    vals[slots.at(st[i], st[k])] += d.weight * jac[i] * jac[k];
+                }
+            }
+        }
+    }
+    let lambda2 = smoothness * smoothness;
+    for row in &grid.smooth_rows {
+        let coef = [1.0, -2.0, 1.0];
+        let r = zeta[row[0]] - 2.0 * zeta[row[1]] + zeta[row[2]];
+        for i in 0..3 {
+            g[row[i]] += lambda2 * coef[i] * r;
+            for k in 0..3 {
+                if row[i] >= row[k] {
+                    vals[slots.at(row[i], row[k])] += lambda2 * coef[i] * coef[k];
+                }
+            }
+        }
+    }
+    g
 }
 
 #[cfg(test)]

@@ -1,6 +1,6 @@
+use capsule_slam_eval::depth::depth_error;
 use capsule_slam_framework::camera::{PinholeCamera, Rig};
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::eval::depth::depth_error;
 
 use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimator, DepthMap, Rgb8};
@@ -143,7 +143,7 @@ fn the_observed_albedo_of_a_plane_is_the_rendered_one() {
 /// the constant (AbsRel 0.008 against 0.054 and 0.009 when written).
 #[test]
 fn a_map_with_the_true_albedo_removes_the_texture_error() {
-    use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
+    use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
     let spec = PhantomSpec { frames: 300, size: SizePreset::NanEye, noise: 0.0, specular: 0.0, ..PhantomSpec::preset(4) };
     let ph = Phantom::new(spec.clone()).unwrap();
     let untextured = Phantom::new(PhantomSpec { texture: false, ..spec }).unwrap();

@@ -3,7 +3,7 @@
 //! a Lambertian surface under a distant light seen orthographically, the reflectance map
 //! linearised in depth and solved per pixel by Jacobi sweeps.
 //!
-//! - Reflectance (digest A1): `R(p, q) = (1 + p ps + q qs) / (√(1+p²+q²) √(1+ps²+qs²))`, clipped at
+//! - Reflectance (Tsai & Shah 1994, eq. 1): `R(p, q) = (1 + p ps + q qs) / (√(1+p²+q²) √(1+ps²+qs²))`, clipped at
 //!   0, `ps = cos τ tan σ`, `qs = sin τ tan σ`, backward differences `p = Z(x,y) − Z(x−1,y)`,
 //!   `q = Z(x,y) − Z(x,y−1)` (0 where a neighbour is missing), Z depth.
 //! - Update (A2): `f = E − R`, `df/dZ = −[(ps+qs)/(N Ns) − (p+q)(1+p ps+q qs)/(N³ Ns)]`; the Kalman
@@ -56,7 +56,7 @@ capsule_slam_framework::plugin_params! {
         pub slant_deg: f64 = 0.0; unit = "deg"; range = 0.0..=89.0;
         /// Tilt τ when fixed (azimuth in the image, x right, y down).
         pub tilt_deg: f64 = 45.0; unit = "deg"; range = -360.0..=360.0;
-        /// Smallest slant used (guard against the slant-0 degeneracy, digest A6).
+        /// Smallest slant used (guard against the degeneracy at slant 0: with the light along the view axis the linearised reflectance has no first-order term in p and q).
         pub slant_floor_deg: f64 = 1.0; unit = "deg"; range = 0.0..=89.0;
         /// Output depth of the nearest (2nd percentile) pixels.
         pub near_m: f64 = 0.01; unit = "m"; range = 0.0..=10.0;
@@ -101,7 +101,7 @@ pub fn reflectance(p: f64, q: f64, ps: f64, qs: f64) -> f64 {
     ((1.0 + p * ps + q * qs) / ((1.0 + p * p + q * q).sqrt() * (1.0 + ps * ps + qs * qs).sqrt())).max(0.0)
 }
 
-/// `df/dZ` of `f = E − R(p, q)` with `dp/dZ = dq/dZ = 1` (digest A2).
+/// `df/dZ` of `f = E − R(p, q)` with `dp/dZ = dq/dZ = 1` (Tsai & Shah 1994, eq. 5).
 pub fn dfdz(p: f64, q: f64, ps: f64, qs: f64) -> f64 {
     let n = (1.0 + p * p + q * q).sqrt();
     let ns = (1.0 + ps * ps + qs * qs).sqrt();
@@ -109,7 +109,7 @@ pub fn dfdz(p: f64, q: f64, ps: f64, qs: f64) -> f64 {
 }
 
 /// Slant, tilt (radians) and albedo from the moments of `e` (already normalised by its maximum)
-/// over the pixels `valid` accepts (digest A3, with its guards).
+/// over the pixels `valid` accepts (Zheng & Chellappa 1991, "Estimation of illuminant direction, albedo, and shape from shading", IEEE TPAMI 13(7), with guards against empty and flat images).
 pub fn estimate_light(e: &GrayF32, valid: &Mask) -> (f64, f64, f64) {
     let (w, h) = e.size();
     let (mut s1, mut s2, mut ex, mut ey, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
@@ -188,7 +188,7 @@ impl DepthEstimator for TsaiShah {
         if !self.warned_falloff && frame.photometry.divided.is_some_and(|d| d.falloff == Falloff::LensAndLight) {
             self.warned_falloff = true;
             ctx.warn(
-                "tsai-shah assumes a distant light but the vignetting stage divided only the lens and LED fall-off: set plugins.vignetting.divide = \"flat-field\" (frontend digest §D)",
+                "tsai-shah assumes a distant light but the vignetting stage divided only the lens and LED fall-off: set plugins.vignetting.divide = \"flat-field\" (divide the whole flat field, cos³α included)",
             );
         }
         let ignore = frame.masks.union();
@@ -216,7 +216,7 @@ impl DepthEstimator for TsaiShah {
         ctx.count("tilt_deg", tilt.to_degrees());
         let (ps, qs) = light_pq(slant, tilt);
         // The sweeps run over the whole image, as the original code (black pixels included):
-        // restricted to the mask, the zero-gradient border weakens the sphere test of digest A8
+        // restricted to the mask, the zero-gradient border weakens the sphere test
         // from corr −0.99 to −0.74. The statistics above and the output below use the mask.
         let (z, res) = solve(&e, &Mask::filled(w, h, true), ps, qs, p.iterations, p.form);
         let idx: Vec<usize> = (0..w * h).filter(|&k| valid.data()[k] && z[k].is_finite()).collect();

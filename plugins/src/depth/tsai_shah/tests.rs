@@ -1,4 +1,4 @@
-//! The behaviour digest A8 pins, on an orthographic Lambertian sphere in the Tsai–Shah
+//! The behaviour Tsai & Shah (1994) describe, on an orthographic Lambertian sphere in their
 //! convention (128², radius 51.2 px, black background, 8-bit).
 
 use capsule_slam_framework::{GrayF32, Mask};

@@ -2,10 +2,11 @@ use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Context, Fuser, ModelSet, Plugin};
 
-use super::{SurfelCpu, SurfelCpuParams};
+use super::SurfelCpu;
+use crate::fuse::surfel_params::SurfelParams;
 use crate::testing::{phantom, rgbd, rig};
 
-fn fuser(p: SurfelCpuParams, ph: &capsule_slam_framework::phantom::Phantom) -> SurfelCpu {
+fn fuser(p: SurfelParams, ph: &capsule_slam_phantom::Phantom) -> SurfelCpu {
     SurfelCpu::build(p, &BuildEnv::new(rig(ph), None)).unwrap()
 }
 
@@ -15,7 +16,7 @@ fn fusing_the_same_frame_twice_adds_no_surfels() {
     let rig = rig(&ph);
     let f = rgbd(&ph, 3);
     let pose = f.gt_t_world_cam.unwrap();
-    let mut s = fuser(SurfelCpuParams::default(), &ph);
+    let mut s = fuser(SurfelParams::default(), &ph);
     let mut r = StageReport::default();
     let first = s.fuse(&f, &pose, &mut Context::new(3, &rig, None, &mut r)).unwrap();
     assert!(first.added > 5000, "{first:?}");
@@ -30,7 +31,7 @@ fn predicting_a_fused_frame_from_its_pose_reproduces_its_depth() {
     let rig = rig(&ph);
     let f = rgbd(&ph, 4);
     let pose = f.gt_t_world_cam.unwrap();
-    let mut s = fuser(SurfelCpuParams { stable_confidence: 0.0, subsample: 1, ..SurfelCpuParams::default() }, &ph);
+    let mut s = fuser(SurfelParams { stable_confidence: 0.0, subsample: 1, ..SurfelParams::default() }, &ph);
     let mut r = StageReport::default();
     s.fuse(&f, &pose, &mut Context::new(4, &rig, None, &mut r)).unwrap();
     let view = s.predict(&pose, ModelSet::Active, &mut Context::new(4, &rig, None, &mut r)).unwrap();
@@ -56,7 +57,7 @@ fn the_active_split_follows_delta_t_and_stale_unstable_surfels_go() {
     let rig = rig(&ph);
     let f = rgbd(&ph, 0);
     let pose = f.gt_t_world_cam.unwrap();
-    let mut s = fuser(SurfelCpuParams { stable_confidence: 0.0, delta_t: 50, ..SurfelCpuParams::default() }, &ph);
+    let mut s = fuser(SurfelParams { stable_confidence: 0.0, delta_t: 50, ..SurfelParams::default() }, &ph);
     let mut r = StageReport::default();
     s.fuse(&f, &pose, &mut Context::new(0, &rig, None, &mut r)).unwrap();
     let n = s.stats().total;
@@ -70,7 +71,7 @@ fn the_active_split_follows_delta_t_and_stale_unstable_surfels_go() {
     assert!(active_at(&mut s, 51, ModelSet::Inactive) > 1000);
 
     // With the default threshold these surfels are unstable; unseen for 21 frames they go.
-    let mut u = fuser(SurfelCpuParams::default(), &ph);
+    let mut u = fuser(SurfelParams::default(), &ph);
     u.fuse(&f, &pose, &mut Context::new(0, &rig, None, &mut r)).unwrap();
     assert_eq!(u.stats().total, n);
     let mut empty = f.clone();
@@ -87,7 +88,7 @@ fn the_active_split_follows_delta_t_and_stale_unstable_surfels_go() {
 fn fused_surfels_lie_on_the_phantom_wall() {
     let ph = phantom(2, 30, 0.0);
     let rig = rig(&ph);
-    let mut s = fuser(SurfelCpuParams::default(), &ph);
+    let mut s = fuser(SurfelParams::default(), &ph);
     let mut r = StageReport::default();
     for i in 0..6 {
         let f = rgbd(&ph, i);
@@ -122,7 +123,7 @@ fn observed_albedo_is_fused_and_predicted_back() {
         }
     }
     f.albedo = Some(albedo.clone());
-    let mut s = fuser(SurfelCpuParams { stable_confidence: 0.0, subsample: 1, ..SurfelCpuParams::default() }, &ph);
+    let mut s = fuser(SurfelParams { stable_confidence: 0.0, subsample: 1, ..SurfelParams::default() }, &ph);
     let mut r = StageReport::default();
     s.fuse(&f, &pose, &mut Context::new(4, &rig, None, &mut r)).unwrap();
     s.fuse(&f, &pose, &mut Context::new(4, &rig, None, &mut r)).unwrap();

@@ -1,151 +1,19 @@
-//! The device side of `surfel-gpu`: buffers, the kernels of `fuse.wgsl` and their dispatch.
+//! The map on the device: its buffers (made once, grown by doubling), the dispatch of the
+//! kernels of one fuse or one prediction, and the read-back of counts, predictions and the map.
 
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
-use bytemuck::{Pod, Zeroable};
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::{Iso3, ModelSet, ModelView, StageError, Surfel};
-use nalgebra::{Point3, Vector3};
+use capsule_slam_gpu::Gpu;
 
-use super::super::measure::PixelMeasurement;
-use super::super::surfel_cpu::SurfelCpuParams;
-use crate::common::gpu::{Gpu, gpu_error};
+use super::kernels::{COUNTER_SLOTS, Kernel, Kernels, Slot, WORKGROUP, compile};
+use super::layout::{GpuMeasurement, GpuSurfel, Uniforms, ViewPixel, unpack_colour};
+use crate::fuse::surfel_params::SurfelParams;
 
-/// A surfel as the kernels see it (48 bytes; `Surfel` in `fuse.wgsl`).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuSurfel {
-    pos: [f32; 3],
-    conf: f32,
-    nrm: [f32; 3],
-    radius: f32,
-    colour: u32,
-    t0: u32,
-    t: u32,
-    albedo: f32,
-}
-
-fn pack_colour(c: [u8; 3]) -> u32 {
-    u32::from(c[0]) | (u32::from(c[1]) << 8) | (u32::from(c[2]) << 16)
-}
-
-fn unpack_colour(c: u32) -> [u8; 3] {
-    [(c & 0xff) as u8, ((c >> 8) & 0xff) as u8, ((c >> 16) & 0xff) as u8]
-}
-
-impl From<&Surfel> for GpuSurfel {
-    fn from(s: &Surfel) -> Self {
-        Self {
-            pos: s.position_m.coords.into(),
-            conf: s.confidence,
-            nrm: s.normal.into(),
-            radius: s.radius_m,
-            colour: pack_colour(s.colour),
-            t0: s.t0,
-            t: s.t,
-            albedo: s.albedo,
-        }
-    }
-}
-
-impl From<&GpuSurfel> for Surfel {
-    fn from(s: &GpuSurfel) -> Self {
-        Surfel {
-            position_m: Point3::from(s.pos),
-            normal: Vector3::from(s.nrm),
-            colour: unpack_colour(s.colour),
-            confidence: s.conf,
-            radius_m: s.radius,
-            t0: s.t0,
-            t: s.t,
-            albedo: s.albedo,
-        }
-    }
-}
-
-/// A measurement as the kernels see it (80 bytes; `Measurement` in `fuse.wgsl`).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-pub struct GpuMeasurement {
-    pos: [f32; 3],
-    conf: f32,
-    nrm: [f32; 3],
-    radius: f32,
-    colour: u32,
-    albedo: f32,
-    pixel: u32,
-    z_live: f32,
-    n_cam: [f32; 3],
-    lambda: f32,
-    ray: [f32; 3],
-    pad: f32,
-}
-
-impl GpuMeasurement {
-    /// From a measurement of an image `width` pixels wide.
-    pub fn new(p: &PixelMeasurement, width: usize) -> Self {
-        let m = &p.m;
-        Self {
-            pos: m.position_m.coords.into(),
-            conf: m.confidence,
-            nrm: m.normal.into(),
-            radius: m.radius_m,
-            colour: pack_colour(m.colour),
-            albedo: m.albedo,
-            pixel: (p.y * width + p.x) as u32,
-            z_live: p.z_live_m,
-            n_cam: p.n_cam.into(),
-            lambda: p.lambda,
-            ray: p.ray_unit.into(),
-            pad: 0.0,
-        }
-    }
-}
-
-/// One predicted pixel (36 bytes; `ViewPixel` in `fuse.wgsl`).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct ViewPixel {
-    depth: f32,
-    nx: f32,
-    ny: f32,
-    nz: f32,
-    colour: u32,
-    conf: f32,
-    t0: u32,
-    t: u32,
-    albedo: f32,
-}
-
-/// The uniforms (160 bytes; `Params` in `fuse.wgsl`).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct Uniforms {
-    t_cw: [[f32; 4]; 4],
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    width: u32,
-    height: u32,
-    n_surfels: u32,
-    n_meas: u32,
-    now: u32,
-    delta_t: u32,
-    life: u32,
-    set: u32,
-    stable: f32,
-    min_depth: f32,
-    max_depth: f32,
-    depth_gate: f32,
-    normal_gate: f32,
-    bypass_nz: f32,
-    radius_ratio: f32,
-    scan_base: u32,
-    scan_n: u32,
-    scan_slot: u32,
-    add_base: u32,
-    pad: u32,
+/// A [`StageError::Gpu`].
+pub fn gpu_error(message: impl Into<String>) -> StageError {
+    StageError::Gpu { message: message.into() }
 }
 
 /// What one call works with: the pose, the time, the model set, the parameters.
@@ -157,7 +25,7 @@ pub struct Phase {
     /// Active or inactive model (prediction).
     pub set: ModelSet,
     /// The fuser's parameters.
-    pub params: SurfelCpuParams,
+    pub params: SurfelParams,
 }
 
 /// The counts a fuse reads back.
@@ -175,108 +43,9 @@ pub struct Counts {
     pub stable: u32,
 }
 
-/// The kernels of `fuse.wgsl`, in the order of [`KERNELS`].
-#[derive(Debug, Clone, Copy)]
-enum Kernel {
-    ClearZ,
-    IndexDepth,
-    IndexId,
-    Associate,
-    Merge,
-    Keep,
-    ScanBlocks,
-    ScanSums,
-    ScanAdd,
-    Compact,
-    Append,
-    Count,
-    SplatDepth,
-    SplatId,
-    Resolve,
-}
-
-/// The entry points, indexed by [`Kernel`].
-const KERNELS: [&str; 15] = [
-    "clear_z",
-    "index_depth",
-    "index_id",
-    "associate",
-    "merge",
-    "keep",
-    "scan_blocks",
-    "scan_sums",
-    "scan_add",
-    "compact",
-    "append",
-    "count",
-    "splat_depth",
-    "splat_id",
-    "resolve",
-];
-
-/// The compiled kernels, made once per process.
-struct Kernels {
-    layout: wgpu::BindGroupLayout,
-    pipelines: Vec<wgpu::ComputePipeline>,
-}
-
-impl Kernels {
-    fn get(&self, kernel: Kernel) -> &wgpu::ComputePipeline {
-        &self.pipelines[kernel as usize]
-    }
-}
-
-static KERNEL_CACHE: OnceLock<Result<Arc<Kernels>, String>> = OnceLock::new();
-
-fn kernels(gpu: &Gpu) -> Result<Arc<Kernels>, StageError> {
-    KERNEL_CACHE.get_or_init(|| compile(gpu).map(Arc::new)).clone().map_err(gpu_error)
-}
-
-fn compile(gpu: &Gpu) -> Result<Kernels, String> {
-    let d = &gpu.device;
-    let scope = d.push_error_scope(wgpu::ErrorFilter::Validation);
-    let module =
-        d.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("fuse.wgsl"), source: wgpu::ShaderSource::Wgsl(include_str!("fuse.wgsl").into()) });
-    let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Storage { read_only }, has_dynamic_offset: false, min_binding_size: None },
-        count: None,
-    };
-    let mut entries = vec![wgpu::BindGroupLayoutEntry {
-        binding: 0,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: None },
-        count: None,
-    }];
-    entries.extend((1..=11).map(|b| storage(b, b == 3)));
-    let layout = d.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("surfel-gpu"), entries: &entries });
-    let pipeline_layout =
-        d.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("surfel-gpu"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
-    let pipelines = KERNELS
-        .iter()
-        .map(|name| {
-            d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(name),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some(name),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        })
-        .collect();
-    if let Some(e) = pollster::block_on(scope.pop()) {
-        return Err(format!("compiling fuse.wgsl: {e}"));
-    }
-    Ok(Kernels { layout, pipelines })
-}
-
 const SURFEL_BYTES: u64 = std::mem::size_of::<GpuSurfel>() as u64;
 const MEAS_BYTES: u64 = std::mem::size_of::<GpuMeasurement>() as u64;
 const VIEW_BYTES: u64 = std::mem::size_of::<ViewPixel>() as u64;
-const COUNTERS: u64 = 8;
-const WG: u32 = 256;
 
 /// Buffers sized by the surfel capacity.
 struct Sized {
@@ -320,15 +89,15 @@ impl DeviceMap {
     /// An empty map for a `width × height` camera with room for `cap` surfels at first (it
     /// grows by doubling).
     pub fn with_capacity(gpu: Arc<Gpu>, width: usize, height: usize, cap: u32) -> Result<Self, StageError> {
-        let kernels = kernels(&gpu)?;
+        let kernels = Arc::new(compile(&gpu).map_err(gpu_error)?);
         let px = (width * height) as u64;
         let uniforms = buffer(&gpu, "uniforms", std::mem::size_of::<Uniforms>() as u64, wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST);
         let meas = buffer(&gpu, "measurements", px * MEAS_BYTES, STORAGE);
         let zdepth = buffer(&gpu, "zdepth", px * 4, STORAGE);
         let zid = buffer(&gpu, "zid", px * 4, STORAGE);
-        let counters = buffer(&gpu, "counters", COUNTERS * 4, STORAGE);
+        let counters = buffer(&gpu, "counters", COUNTER_SLOTS * 4, STORAGE);
         let view = buffer(&gpu, "view", px * VIEW_BYTES, STORAGE);
-        let staging_counters = buffer(&gpu, "staging counters", COUNTERS * 4, STAGING);
+        let staging_counters = buffer(&gpu, "staging counters", COUNTER_SLOTS * 4, STAGING);
         let staging_view = buffer(&gpu, "staging view", px * VIEW_BYTES, STAGING);
         let cap = cap.max(1);
         Ok(Self {
@@ -365,7 +134,7 @@ impl DeviceMap {
         let flag_len = u64::from(cap) + u64::from(pixels);
         let flags = buffer(gpu, "flags", flag_len * 4, STORAGE);
         let offsets = buffer(gpu, "offsets", flag_len * 4, STORAGE);
-        let blocks = buffer(gpu, "blocks", flag_len.div_ceil(u64::from(WG)) * 4, STORAGE);
+        let blocks = buffer(gpu, "blocks", flag_len.div_ceil(u64::from(WORKGROUP)) * 4, STORAGE);
         let [uniforms, meas, zdepth, zid, counters, view] = fixed;
         let bind = |a: &wgpu::Buffer, b: &wgpu::Buffer| {
             let res = [uniforms, a, b, meas, zdepth, zid, &winner, &flags, &offsets, &blocks, counters, view];
@@ -446,20 +215,27 @@ impl DeviceMap {
         }
     }
 
-    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: Kernel, threads: u64) {
-        let groups = threads.div_ceil(u64::from(WG));
+    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, kernel: Kernel, threads: u64) -> Result<(), StageError> {
+        let groups = threads.div_ceil(u64::from(WORKGROUP));
         if groups == 0 {
-            return;
+            return Ok(());
         }
+        let limit = self.gpu.limits.max_compute_workgroups_per_dimension;
+        let groups = u32::try_from(groups).ok().filter(|g| *g <= limit).ok_or_else(|| {
+            gpu_error(format!(
+                "{kernel:?} needs {groups} workgroups of {WORKGROUP}, more than this device dispatches at once ({limit}); use surfel-cpu or a smaller map"
+            ))
+        })?;
         pass.set_pipeline(self.kernels.get(kernel));
         pass.set_bind_group(0, &self.sized.binds[self.cur], &[]);
-        pass.dispatch_workgroups(groups.min(65_535) as u32, 1, 1);
+        pass.dispatch_workgroups(groups, 1, 1);
+        Ok(())
     }
 
-    fn scan(&self, pass: &mut wgpu::ComputePass<'_>, n: u64) {
-        self.dispatch(pass, Kernel::ScanBlocks, n);
-        self.dispatch(pass, Kernel::ScanSums, 1);
-        self.dispatch(pass, Kernel::ScanAdd, n);
+    fn scan(&self, pass: &mut wgpu::ComputePass<'_>, n: u64) -> Result<(), StageError> {
+        self.dispatch(pass, Kernel::ScanBlocks, n)?;
+        self.dispatch(pass, Kernel::ScanSums, 1)?;
+        self.dispatch(pass, Kernel::ScanAdd, n)
     }
 
     /// Fuses one frame's measurements (in pixel order) at `phase`.
@@ -486,14 +262,14 @@ impl DeviceMap {
         enc.clear_buffer(&self.sized.winner, 0, None);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("fuse 1"), timestamp_writes: None });
-            self.dispatch(&mut pass, Kernel::ClearZ, px);
-            self.dispatch(&mut pass, Kernel::IndexDepth, n);
-            self.dispatch(&mut pass, Kernel::IndexId, n);
-            self.dispatch(&mut pass, Kernel::Associate, u64::from(n_meas));
-            self.dispatch(&mut pass, Kernel::Merge, n);
-            self.dispatch(&mut pass, Kernel::Keep, n);
-            self.scan(&mut pass, n);
-            self.dispatch(&mut pass, Kernel::Compact, n);
+            self.dispatch(&mut pass, Kernel::ClearZ, px)?;
+            self.dispatch(&mut pass, Kernel::IndexDepth, n)?;
+            self.dispatch(&mut pass, Kernel::IndexId, n)?;
+            self.dispatch(&mut pass, Kernel::Associate, u64::from(n_meas))?;
+            self.dispatch(&mut pass, Kernel::Merge, n)?;
+            self.dispatch(&mut pass, Kernel::Keep, n)?;
+            self.scan(&mut pass, n)?;
+            self.dispatch(&mut pass, Kernel::Compact, n)?;
         }
         q.submit([enc.finish()]);
         // 2: the new surfels after the kept ones, and the counts.
@@ -504,14 +280,21 @@ impl DeviceMap {
         let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("fuse 2") });
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("fuse 2"), timestamp_writes: None });
-            self.scan(&mut pass, u64::from(n_meas));
-            self.dispatch(&mut pass, Kernel::Append, u64::from(n_meas));
-            self.dispatch(&mut pass, Kernel::Count, n + u64::from(n_meas));
+            self.scan(&mut pass, u64::from(n_meas))?;
+            self.dispatch(&mut pass, Kernel::Append, u64::from(n_meas))?;
+            self.dispatch(&mut pass, Kernel::Count, n + u64::from(n_meas))?;
         }
         q.submit([enc.finish()]);
-        let raw = self.gpu.read(&self.counters, &self.staging_counters, COUNTERS * 4)?;
+        let raw = self.gpu.read(&self.counters, &self.staging_counters, COUNTER_SLOTS * 4).map_err(|e| gpu_error(e.message))?;
         let c: Vec<u32> = bytemuck::pod_collect_to_vec(&raw);
-        let counts = Counts { total: c[0] + c[1], added: c[1], merged: c[2], active: c[3], stable: c[4] };
+        let at = |slot: Slot| c[slot as usize];
+        let counts = Counts {
+            total: at(Slot::Kept) + at(Slot::Added),
+            added: at(Slot::Added),
+            merged: at(Slot::Merged),
+            active: at(Slot::Active),
+            stable: at(Slot::Stable),
+        };
         self.n = counts.total;
         self.cur = 1 - self.cur;
         Ok(counts)
@@ -529,13 +312,13 @@ impl DeviceMap {
         let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("predict") });
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("predict"), timestamp_writes: None });
-            self.dispatch(&mut pass, Kernel::ClearZ, px);
-            self.dispatch(&mut pass, Kernel::SplatDepth, u64::from(self.n));
-            self.dispatch(&mut pass, Kernel::SplatId, u64::from(self.n));
-            self.dispatch(&mut pass, Kernel::Resolve, px);
+            self.dispatch(&mut pass, Kernel::ClearZ, px)?;
+            self.dispatch(&mut pass, Kernel::SplatDepth, u64::from(self.n))?;
+            self.dispatch(&mut pass, Kernel::SplatId, u64::from(self.n))?;
+            self.dispatch(&mut pass, Kernel::Resolve, px)?;
         }
         self.gpu.queue.submit([enc.finish()]);
-        let raw = self.gpu.read(&self.view, &self.staging_view, px * VIEW_BYTES)?;
+        let raw = self.gpu.read(&self.view, &self.staging_view, px * VIEW_BYTES).map_err(|e| gpu_error(e.message))?;
         let pixels: Vec<ViewPixel> = bytemuck::pod_collect_to_vec(&raw);
         let mut view = ModelView::empty(w, h, *t_world_cam);
         for (k, p) in pixels.iter().enumerate() {
@@ -560,7 +343,7 @@ impl DeviceMap {
         // than held at the map's capacity.
         let bytes = u64::from(self.n) * SURFEL_BYTES;
         let staging = buffer(&self.gpu, "staging surfels", bytes, STAGING);
-        let raw = self.gpu.read(&self.sized.surf[self.cur], &staging, bytes)?;
+        let raw = self.gpu.read(&self.sized.surf[self.cur], &staging, bytes).map_err(|e| gpu_error(e.message))?;
         let g: Vec<GpuSurfel> = bytemuck::pod_collect_to_vec(&raw);
         Ok(g.iter().map(Surfel::from).collect())
     }

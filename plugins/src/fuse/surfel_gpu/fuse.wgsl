@@ -214,7 +214,7 @@ fn merge(@builtin(global_invocation_id) g: vec3<u32>) {
     s.conf = c + a;
     s.t = P.now;
     surf_a[i] = s;
-    atomicAdd(&counters[2], 1u);
+    atomicAdd(&counters[SLOT_MERGED], 1u);
 }
 
 fn round_pos3(v: vec3<f32>) -> vec3<f32> {
@@ -293,7 +293,7 @@ fn append(@builtin(global_invocation_id) g: vec3<u32>) {
     if (j >= P.n_meas) { return; }
     if (flags[P.add_base + j] == 0u) { return; }
     let m = meas[j];
-    let at = atomicLoad(&counters[0]) + offsets[P.add_base + j];
+    let at = atomicLoad(&counters[SLOT_KEPT]) + offsets[P.add_base + j];
     surf_b[at] = Surfel(m.pos, m.conf, m.nrm, m.radius, m.colour, P.now, P.now, m.albedo);
 }
 
@@ -301,10 +301,10 @@ fn append(@builtin(global_invocation_id) g: vec3<u32>) {
 @compute @workgroup_size(256)
 fn count(@builtin(global_invocation_id) g: vec3<u32>) {
     let i = g.x;
-    if (i >= atomicLoad(&counters[0]) + atomicLoad(&counters[1])) { return; }
+    if (i >= atomicLoad(&counters[SLOT_KEPT]) + atomicLoad(&counters[SLOT_ADDED])) { return; }
     let s = surf_b[i];
-    if (is_active(s)) { atomicAdd(&counters[3], 1u); }
-    if (s.conf >= P.stable) { atomicAdd(&counters[4], 1u); }
+    if (is_active(s)) { atomicAdd(&counters[SLOT_ACTIVE], 1u); }
+    if (s.conf >= P.stable) { atomicAdd(&counters[SLOT_STABLE], 1u); }
 }
 
 // The prediction (surfel_cpu::predict): stable surfels of the set as discs, ray–disc

@@ -13,8 +13,8 @@
 //! with a quaternion), which can flip an association that sits exactly on a gate.
 
 mod device;
-
-use std::sync::Arc;
+mod kernels;
+mod layout;
 
 use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::registry::BuildEnv;
@@ -22,14 +22,14 @@ use capsule_slam_framework::stage::{FuseStats, LoopClosure};
 use capsule_slam_framework::{Context, Fuser, Iso3, MapStats, ModelSet, ModelView, Plugin, StageError, SurfelSet, register};
 
 use super::measure::measurements;
-use super::surfel_cpu::SurfelCpuParams;
+use super::surfel_params::SurfelParams;
 use super::surfel_rules::reactivate;
-use crate::common::gpu::{Gpu, gpu};
-use device::{DeviceMap, GpuMeasurement, Phase};
+use device::{DeviceMap, Phase, gpu_error};
+use layout::GpuMeasurement;
 
 /// The GPU surfel map.
 pub struct SurfelGpu {
-    params: SurfelCpuParams,
+    params: SurfelParams,
     map: DeviceMap,
     now: u32,
     stats: MapStats,
@@ -39,18 +39,18 @@ impl Plugin for SurfelGpu {
     const NAME: &'static str = "surfel-gpu";
     const SUMMARY: &'static str =
         "surfel map on the GPU (wgpu compute): the rules of surfel-cpu as kernels, the map kept on the device; same parameters as surfel-cpu";
-    type Params = SurfelCpuParams;
+    type Params = SurfelParams;
 
-    fn build(params: SurfelCpuParams, env: &BuildEnv) -> Result<Self, StageError> {
+    fn build(params: SurfelParams, env: &BuildEnv) -> Result<Self, StageError> {
         Self::with_capacity(params, env, None)
     }
 }
 
 impl SurfelGpu {
     /// A map that starts with room for `cap` surfels (`None`: 4 a pixel; it grows by doubling).
-    fn with_capacity(params: SurfelCpuParams, env: &BuildEnv, cap: Option<u32>) -> Result<Self, StageError> {
+    fn with_capacity(params: SurfelParams, env: &BuildEnv, cap: Option<u32>) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
-        let gpu: Arc<Gpu> = gpu()?;
+        let gpu = env.gpu.get().map_err(|e| gpu_error(e.message))?;
         let cam = env.rig.camera();
         let cap = cap.unwrap_or_else(|| (4 * cam.width * cam.height).max(1024) as u32);
         let map = DeviceMap::with_capacity(gpu, cam.width, cam.height, cap)?;
@@ -59,8 +59,7 @@ impl SurfelGpu {
 
     /// The device's name and backend (e.g. "llvmpipe (LLVM 15.0.6, 256 bits), Vulkan").
     pub fn device_name(&self) -> String {
-        let info = &self.map.gpu().info;
-        format!("{}, {:?}", info.name, info.backend)
+        self.map.gpu().name()
     }
 
     fn phase(&self, t_world_cam: &Iso3, now: u32, set: ModelSet) -> Phase {

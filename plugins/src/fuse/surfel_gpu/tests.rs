@@ -3,21 +3,22 @@
 
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
-use capsule_slam_framework::phantom::Phantom;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::LoopClosure;
 use capsule_slam_framework::{Context, Fuser, Iso3, ModelSet, ModelView, Plugin, Surfel};
+use capsule_slam_phantom::Phantom;
 use nalgebra::{Point3, Rotation3, Vector3};
 
 use super::SurfelGpu;
-use crate::common::gpu::gpu_or_skip;
-use crate::fuse::surfel_cpu::{SurfelCpu, SurfelCpuParams};
+use crate::fuse::surfel_cpu::SurfelCpu;
+use crate::fuse::surfel_params::SurfelParams;
 use crate::testing::{phantom, rgbd, rig};
+use capsule_slam_gpu::GpuHandle;
 
 /// Parameters that exercise every rule within a few frames: removal of stale unstable surfels
 /// (lifetime 5), stable surfels (confidence 3), inactive surfels (δt 8).
-fn params() -> SurfelCpuParams {
-    SurfelCpuParams { stable_confidence: 3.0, unstable_lifetime: 5, delta_t: 8, ..SurfelCpuParams::default() }
+fn params() -> SurfelParams {
+    SurfelParams { stable_confidence: 3.0, unstable_lifetime: 5, delta_t: 8, ..SurfelParams::default() }
 }
 
 /// Fuses frames `0..n` at their true poses into both fusers.
@@ -69,20 +70,21 @@ fn view_agreement(a: &ModelView, b: &ModelView) -> (f64, usize) {
     (same as f64 / n as f64, filled)
 }
 
-fn builders(ph: &Phantom, cap: Option<u32>) -> (SurfelGpu, SurfelCpu) {
-    let env = BuildEnv::new(rig(ph), None);
+fn builders(ph: &Phantom, cap: Option<u32>, gpu: &GpuHandle) -> (SurfelGpu, SurfelCpu) {
+    let env = BuildEnv::new(rig(ph), None).with_gpu(gpu.clone());
     let g = SurfelGpu::with_capacity(params(), &env, cap).unwrap();
     (g, SurfelCpu::build(params(), &env).unwrap())
 }
 
 #[test]
 fn the_gpu_map_and_its_predictions_equal_the_cpu_ones() {
-    if gpu_or_skip("the_gpu_map_and_its_predictions_equal_the_cpu_ones").is_none() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("the_gpu_map_and_its_predictions_equal_the_cpu_ones").is_none() {
         return;
     }
     let ph = phantom(2, 24, 0.0);
     // Room for 1 000 surfels at first: the map grows on the device many times.
-    let (mut g, mut c) = builders(&ph, Some(1000));
+    let (mut g, mut c) = builders(&ph, Some(1000), &gpu);
     fuse_both(&ph, &mut g, &mut c, 24);
     let (sg, sc) = (g.snapshot().unwrap().surfels, c.snapshot().unwrap().surfels);
     let share = agreement(&sg, &sc);
@@ -105,12 +107,13 @@ fn the_gpu_map_and_its_predictions_equal_the_cpu_ones() {
 
 #[test]
 fn the_same_frames_give_the_same_map_every_time() {
-    if gpu_or_skip("the_same_frames_give_the_same_map_every_time").is_none() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("the_same_frames_give_the_same_map_every_time").is_none() {
         return;
     }
     let ph = phantom(1, 12, 0.0005);
     let run = || {
-        let (mut g, mut c) = builders(&ph, None);
+        let (mut g, mut c) = builders(&ph, None, &gpu);
         fuse_both(&ph, &mut g, &mut c, 12);
         g.snapshot().unwrap().surfels
     };
@@ -121,11 +124,12 @@ fn the_same_frames_give_the_same_map_every_time() {
 
 #[test]
 fn a_closure_moves_the_gpu_map_like_the_cpu_map_and_reactivates_it() {
-    if gpu_or_skip("a_closure_moves_the_gpu_map_like_the_cpu_map_and_reactivates_it").is_none() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("a_closure_moves_the_gpu_map_like_the_cpu_map_and_reactivates_it").is_none() {
         return;
     }
     let ph = phantom(2, 20, 0.0);
-    let (mut g, mut c) = builders(&ph, None);
+    let (mut g, mut c) = builders(&ph, None, &gpu);
     fuse_both(&ph, &mut g, &mut c, 20);
     // A rigid correction expressed per node: R (v − g) + g + t with t = R g + s − g.
     let rot = Rotation3::from_euler_angles(0.01, -0.02, 0.015);
@@ -163,11 +167,12 @@ fn a_closure_moves_the_gpu_map_like_the_cpu_map_and_reactivates_it() {
 
 #[test]
 fn a_camera_of_another_size_is_an_error_not_a_crash() {
-    if gpu_or_skip("a_camera_of_another_size_is_an_error_not_a_crash").is_none() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("a_camera_of_another_size_is_an_error_not_a_crash").is_none() {
         return;
     }
     let ph = phantom(1, 2, 0.0);
-    let (mut g, _) = builders(&ph, None);
+    let (mut g, _) = builders(&ph, None, &gpu);
     let big = capsule_slam_framework::camera::Rig::Mono(capsule_slam_framework::PinholeCamera::new(64, 48, 50.0, 50.0, 31.5, 23.5));
     let mut r = StageReport::default();
     let err = g.predict(&Iso3::identity(), ModelSet::Active, &mut Context::new(0, &big, None, &mut r)).unwrap_err().to_string();

@@ -1,6 +1,6 @@
 //! Specular highlight detection: "the gradient map of the input image combined with the peak
-//! values detected by an adaptive threshold" (the paper, Sec. 3.1; the recipe of frontend digest
-//! §C, after Arnold et al. 2010 and Oh et al. 2007):
+//! values detected by an adaptive threshold" (the paper, Sec. 3.1; after
+//! Arnold et al. 2010 and Oh et al. 2007):
 //!
 //! 1. peaks: on the brightness `V = max(R, G, B)`, a pixel above the local mean plus
 //!    `peak_sigma` local standard deviations (a `window_px` box, field of view only), above
@@ -15,9 +15,10 @@
 //!    steps: with `grow_ratio = 2` this is where the highlight adds at least as much light as
 //!    the tissue reflects diffusely, the phantom's ground-truth definition.
 
-use capsule_slam_framework::{Mask, Rgb8};
-
 use capsule_slam_framework::image::NTSC_WEIGHTS;
+use capsule_slam_framework::{Mask, Rgb8, StageError};
+
+use super::integral::Integral;
 
 /// The detector's thresholds.
 #[derive(Debug, Clone, Copy)]
@@ -51,68 +52,6 @@ pub struct Detection {
     pub rejected: usize,
 }
 
-/// Side of the square bins the window statistics are summed over (the window's edges snap to
-/// them: a 61 px window becomes 61–63 px; a quarter of the table to build and read).
-const BIN: usize = 2;
-
-/// Summed-area tables, over `BIN`×`BIN` bins, of the valid pixels' count, brightness and squared
-/// brightness (exact integer sums).
-struct Integral {
-    /// Bins per row (+1 for the table's zero border).
-    bw: usize,
-    /// Bins per column.
-    bh: usize,
-    /// Per entry: (count, Σ V, Σ V²).
-    sum: Vec<(u32, u32, u64)>,
-}
-
-impl Integral {
-    fn new(w: usize, h: usize, mut sum: Vec<(u32, u32, u64)>, f: impl Fn(usize) -> Option<u8>) -> Self {
-        let (bw, bh) = (w.div_ceil(BIN), h.div_ceil(BIN));
-        sum.clear();
-        sum.resize((bw + 1) * (bh + 1), (0, 0, 0));
-        // Bin sums into row by + 1 of the table, then prefix sums in place.
-        for y in 0..h {
-            let row = (y / BIN + 1) * (bw + 1);
-            for x in 0..w {
-                if let Some(v) = f(y * w + x) {
-                    let e = &mut sum[row + x / BIN + 1];
-                    e.0 += 1;
-                    e.1 += u32::from(v);
-                    e.2 += u64::from(v) * u64::from(v);
-                }
-            }
-        }
-        for by in 1..=bh {
-            let mut acc = (0u32, 0u32, 0u64);
-            for bx in 1..=bw {
-                let i = by * (bw + 1) + bx;
-                let (b, up) = (sum[i], sum[i - bw - 1]);
-                acc = (acc.0 + b.0, acc.1 + b.1, acc.2 + b.2);
-                sum[i] = (up.0 + acc.0, up.1 + acc.1, up.2 + acc.2);
-            }
-        }
-        Self { bw: bw + 1, bh, sum }
-    }
-
-    /// (count, mean, variance) over the bins holding columns x0..x1 and rows y0..y1 (exclusive
-    /// ends, pixels).
-    fn stats(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> (f64, f64, f64) {
-        let (bx0, by0) = (x0 / BIN, y0 / BIN);
-        let (bx1, by1) = (x1.div_ceil(BIN).min(self.bw - 1), y1.div_ceil(BIN).min(self.bh));
-        let s = |x: usize, y: usize| self.sum[y * self.bw + x];
-        let (a, b, c, d) = (s(bx1, by1), s(bx0, by1), s(bx1, by0), s(bx0, by0));
-        let n = f64::from(a.0 + d.0 - b.0 - c.0);
-        if n <= 0.0 {
-            return (0.0, 0.0, 0.0);
-        }
-        let s1 = f64::from(a.1 + d.1 - b.1 - c.1);
-        let s2 = (a.2 + d.2 - b.2 - c.2) as f64;
-        let mean = s1 / n;
-        (n, mean, (s2 / n - mean * mean).max(0.0))
-    }
-}
-
 /// Buffers of one image size, reused from frame to frame (the tables are megabytes: fresh
 /// allocations would cost page faults every frame).
 #[derive(Default)]
@@ -125,17 +64,99 @@ pub struct Scratch {
     steps: Vec<u16>,
 }
 
-/// Detects the highlights of `img` among the pixels set in `valid`; `decode` maps 8-bit values
-/// to linear.
-pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], scratch: &mut Scratch) -> Detection {
-    let (w, h) = img.size();
-    let n = w * h;
-    let mut out = Detection { mask: Mask::new(w, h), groups: 0, rejected: 0 };
-    if n == 0 || valid.size() != (w, h) {
-        return out;
+/// The per-pixel planes of one image the steps read: brightness, saturation, validity, and
+/// the window and neighbourhood geometry.
+struct Planes<'a> {
+    img: &'a Rgb8,
+    valid: &'a Mask,
+    value: &'a [u8],
+    saturation: &'a [f32],
+    w: usize,
+    h: usize,
+    /// Half the window side, pixels.
+    half: usize,
+}
+
+impl Planes<'_> {
+    fn ok(&self, k: usize) -> bool {
+        self.valid.data()[k]
     }
-    // Brightness V = max channel and saturation 1 − min / max per pixel.
+
+    /// The statistics window about pixel `k` (exclusive ends), clipped to the image.
+    fn window(&self, k: usize) -> (usize, usize, usize, usize) {
+        let (x, y, half) = (k % self.w, k / self.w, self.half);
+        (x.saturating_sub(half), y.saturating_sub(half), (x + half + 1).min(self.w), (y + half + 1).min(self.h))
+    }
+
+    /// The 8-connected neighbours of pixel `k` inside the image.
+    fn neighbours8(&self, k: usize) -> impl Iterator<Item = usize> + use<> {
+        let (w, h) = (self.w, self.h);
+        let (x, y) = ((k % w) as isize, (k / w) as isize);
+        (-1..=1isize).flat_map(move |dy| (-1..=1isize).map(move |dx| (dx, dy))).filter_map(move |(dx, dy)| {
+            let (nx, ny) = (x + dx, y + dy);
+            ((dx, dy) != (0, 0) && nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h).then(|| ny as usize * w + nx as usize)
+        })
+    }
+
+    /// Sobel gradient magnitude of V at pixel `k`, levels per pixel (0 on the image border).
+    fn sobel(&self, k: usize) -> f64 {
+        let (w, h) = (self.w, self.h);
+        let (x, y) = (k % w, k / w);
+        if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h {
+            return 0.0;
+        }
+        let v = |dx: isize, dy: isize| f64::from(self.value[(y as isize + dy) as usize * w + (x as isize + dx) as usize]);
+        let gx = (v(1, -1) + 2.0 * v(1, 0) + v(1, 1)) - (v(-1, -1) + 2.0 * v(-1, 0) + v(-1, 1));
+        let gy = (v(-1, 1) + 2.0 * v(0, 1) + v(1, 1)) - (v(-1, -1) + 2.0 * v(0, -1) + v(1, -1));
+        (gx * gx + gy * gy).sqrt() / 8.0
+    }
+}
+
+/// Detects the highlights of `img` among the pixels set in `valid`; `decode` maps 8-bit values
+/// to linear. A `valid` mask of another size than the image is an error.
+pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], scratch: &mut Scratch) -> Result<Detection, StageError> {
+    let (w, h) = img.size();
+    if valid.size() != (w, h) {
+        return Err(StageError::invalid_input(format!("reflection: the valid-pixel mask is {:?} but the image {w}×{h}", valid.size())));
+    }
+    let mut out = Detection { mask: Mask::new(w, h), groups: 0, rejected: 0 };
+    if w * h == 0 {
+        return Ok(out);
+    }
     let Scratch { value, saturation, integral, peak, label, steps } = scratch;
+    brightness_and_saturation(img, value, saturation);
+    let planes = Planes { img, valid, value, saturation, w, h, half: p.window_px / 2 };
+    find_peaks(&planes, p, integral, peak);
+    if !peak.iter().any(|v| *v) {
+        return Ok(out);
+    }
+    // `label` is all 0 and `steps` all u16::MAX between calls (each step resets what it set),
+    // so only a new image size fills them.
+    if label.len() != w * h {
+        label.clear();
+        label.resize(w * h, 0);
+        steps.clear();
+        steps.resize(w * h, u16::MAX);
+    }
+    let (seeds, labelled) = keep_by_rim_gradient(&planes, peak, label, p, &mut out);
+    if seeds.is_empty() {
+        for k in labelled {
+            label[k] = 0;
+        }
+        return Ok(out);
+    }
+    let lum = Luminance::new(decode);
+    let background = Background::around(&planes, &seeds, peak, &lum, p.max_grow_px + planes.half + 1);
+    for k in labelled {
+        label[k] = 0;
+    }
+    grow(&planes, &seeds, &background, &lum, p, steps, &mut out.mask);
+    Ok(out)
+}
+
+/// Brightness V = max channel and saturation 1 − min / max per pixel.
+fn brightness_and_saturation(img: &Rgb8, value: &mut Vec<u8>, saturation: &mut Vec<f32>) {
+    let n = img.width() * img.height();
     value.resize(n, 0);
     saturation.resize(n, 0.0);
     for ((v, s), c) in value.iter_mut().zip(saturation.iter_mut()).zip(img.data().chunks_exact(3)) {
@@ -143,63 +164,31 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], s
         *v = hi;
         *s = if hi > 0 { 1.0 - f32::from(lo) / f32::from(hi) } else { 1.0 };
     }
-    let (value, saturation) = (&*value, &*saturation);
-    let ok = |k: usize| valid.data()[k];
-    let stats = Integral::new(w, h, std::mem::take(integral), |k| ok(k).then_some(value[k]));
-    let half = p.window_px / 2;
-    let window = |k: usize| {
-        let (x, y) = (k % w, k / w);
-        (x.saturating_sub(half), y.saturating_sub(half), (x + half + 1).min(w), (y + half + 1).min(h))
-    };
-    // 1. Peaks by the adaptive threshold (the window statistics only for the white, bright
-    // pixels that could be peaks).
-    peak.resize(n, false);
-    let is_peak = |k: usize| {
-        if !ok(k) || f64::from(value[k]) < p.min_value || f64::from(saturation[k]) > p.max_saturation {
-            return false;
-        }
-        let (x0, y0, x1, y1) = window(k);
-        let (_, mean, var) = stats.stats(x0, y0, x1, y1);
-        f64::from(value[k]) > mean + p.peak_sigma * var.sqrt()
-    };
+}
+
+/// Step 1: peaks by the adaptive threshold, V above the window's mean + `peak_sigma` σ (the
+/// window statistics only for the white, bright pixels that could be peaks).
+fn find_peaks(px: &Planes, p: &DetectParams, integral: &mut Vec<(u32, u32, u64)>, peak: &mut Vec<bool>) {
+    let stats = Integral::new(px.w, px.h, std::mem::take(integral), |k| px.ok(k).then_some(px.value[k]));
+    peak.resize(px.w * px.h, false);
     for (k, o) in peak.iter_mut().enumerate() {
-        *o = is_peak(k);
+        *o = px.ok(k) && f64::from(px.value[k]) >= p.min_value && f64::from(px.saturation[k]) <= p.max_saturation && {
+            let (x0, y0, x1, y1) = px.window(k);
+            let (_, mean, var) = stats.stats(x0, y0, x1, y1);
+            f64::from(px.value[k]) > mean + p.peak_sigma * var.sqrt()
+        };
     }
     *integral = stats.sum;
-    let peak = &*peak;
-    if !peak.iter().any(|v| *v) {
-        return out;
-    }
-    // 2. Groups of peaks (8-connected, in index order) kept by their rim gradient.
-    let sobel = |k: usize| -> f64 {
-        let (x, y) = (k % w, k / w);
-        if x == 0 || y == 0 || x + 1 >= w || y + 1 >= h {
-            return 0.0;
-        }
-        let v = |dx: isize, dy: isize| f64::from(value[(y as isize + dy) as usize * w + (x as isize + dx) as usize]);
-        let gx = (v(1, -1) + 2.0 * v(1, 0) + v(1, 1)) - (v(-1, -1) + 2.0 * v(-1, 0) + v(-1, 1));
-        let gy = (v(-1, 1) + 2.0 * v(0, 1) + v(1, 1)) - (v(-1, -1) + 2.0 * v(0, -1) + v(1, -1));
-        (gx * gx + gy * gy).sqrt() / 8.0
-    };
-    let neighbours8 = |k: usize| {
-        let (x, y) = ((k % w) as isize, (k / w) as isize);
-        (-1..=1isize).flat_map(move |dy| (-1..=1isize).map(move |dx| (dx, dy))).filter_map(move |(dx, dy)| {
-            let (nx, ny) = (x + dx, y + dy);
-            ((dx, dy) != (0, 0) && nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h).then(|| ny as usize * w + nx as usize)
-        })
-    };
-    // `label` is all 0 and `steps` all u16::MAX between calls (each resets what it set), so
-    // only a new image size fills them.
-    if label.len() != n {
-        label.clear();
-        label.resize(n, 0);
-        steps.clear();
-        steps.resize(n, u16::MAX);
-    }
+}
+
+/// Step 2: groups of peaks (8-connected, in index order) kept by the mean Sobel magnitude on
+/// their one-pixel outer ring. Returns the kept groups' pixels (the seeds) and every labelled
+/// pixel (to be reset by the caller); counts groups and rejections into `out`.
+fn keep_by_rim_gradient(px: &Planes, peak: &[bool], label: &mut [u32], p: &DetectParams, out: &mut Detection) -> (Vec<usize>, Vec<usize>) {
     let mut labelled = Vec::new();
     let mut seeds = Vec::new();
     let mut stack = Vec::new();
-    for start in 0..n {
+    for start in 0..px.w * px.h {
         if !peak[start] || label[start] != 0 {
             continue;
         }
@@ -210,7 +199,7 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], s
         label[start] = id;
         stack.push(start);
         while let Some(k) = stack.pop() {
-            for q in neighbours8(k) {
+            for q in px.neighbours8(k) {
                 if peak[q] && label[q] == 0 {
                     label[q] = id;
                     labelled.push(q);
@@ -218,70 +207,106 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], s
                 }
             }
         }
-        // The one-pixel outer ring, each ring pixel counted once (marked u32::MAX meanwhile).
-        let mut rim = (0.0, 0usize);
-        let mut ring = Vec::new();
         let members = &labelled[first..];
-        for &k in members {
-            for q in neighbours8(k) {
-                if label[q] == 0 && ok(q) {
-                    label[q] = u32::MAX;
-                    ring.push(q);
-                    rim.0 += sobel(q);
-                    rim.1 += 1;
-                }
-            }
-        }
-        for q in ring {
-            label[q] = 0;
-        }
-        if rim.1 > 0 && rim.0 / rim.1 as f64 >= p.min_rim_gradient {
+        if rim_gradient(px, members, label).is_some_and(|g| g >= p.min_rim_gradient) {
             seeds.extend_from_slice(members);
         } else {
             out.rejected += 1;
         }
     }
-    // 3. Growth against the diffuse background: the window's mean linear luminance without the
-    // peaks (computed where the growth asks).
-    let lum_lut: [[f64; 256]; 3] = std::array::from_fn(|c| std::array::from_fn(|v| NTSC_WEIGHTS[c] * decode[v]));
-    let lum = |k: usize| -> f64 {
-        let c = &img.data()[3 * k..3 * k + 3];
-        lum_lut[0][usize::from(c[0])] + lum_lut[1][usize::from(c[1])] + lum_lut[2][usize::from(c[2])]
-    };
-    // The background table covers the seeds' bounding box grown by the reach of the growth and
-    // of the window (a highlight is local; the rest of the image is never asked).
-    let reach = p.max_grow_px + half + 1;
-    let (bx0, by0, bx1, by1) = seeds.iter().fold((w, h, 0, 0), |(x0, y0, x1, y1), &k| (x0.min(k % w), y0.min(k / w), x1.max(k % w + 1), y1.max(k / w + 1)));
-    let (bx0, by0, bx1, by1) = (bx0.saturating_sub(reach), by0.saturating_sub(reach), (bx1 + reach).min(w), (by1 + reach).min(h));
-    let bw = bx1 - bx0;
-    let mut bg = vec![(0.0f64, 0.0f64); (bw + 1) * (by1 - by0 + 1)];
-    for y in by0..by1 {
-        let mut row = (0.0, 0.0);
-        for x in bx0..bx1 {
-            let k = y * w + x;
-            if ok(k) && !peak[k] {
-                row.0 += 1.0;
-                row.1 += lum(k);
+    (seeds, labelled)
+}
+
+/// The mean Sobel magnitude on a group's one-pixel outer ring (valid pixels, each counted once:
+/// marked `u32::MAX` in `label` meanwhile); `None` for a group without a ring.
+fn rim_gradient(px: &Planes, members: &[usize], label: &mut [u32]) -> Option<f64> {
+    let mut rim = (0.0, 0usize);
+    let mut ring = Vec::new();
+    for &k in members {
+        for q in px.neighbours8(k) {
+            if label[q] == 0 && px.ok(q) {
+                label[q] = u32::MAX;
+                ring.push(q);
+                rim.0 += px.sobel(q);
+                rim.1 += 1;
             }
-            let (ty, tx) = (y - by0, x - bx0);
-            let up = bg[ty * (bw + 1) + tx + 1];
-            bg[(ty + 1) * (bw + 1) + tx + 1] = (up.0 + row.0, up.1 + row.1);
         }
     }
-    let background = |k: usize| {
-        let (x0, y0, x1, y1) = window(k);
+    for q in ring {
+        label[q] = 0;
+    }
+    (rim.1 > 0).then(|| rim.0 / rim.1 as f64)
+}
+
+/// Linear luminance of an 8-bit colour through a decoding table.
+struct Luminance([[f64; 256]; 3]);
+
+impl Luminance {
+    fn new(decode: &[f64; 256]) -> Self {
+        Self(std::array::from_fn(|c| std::array::from_fn(|v| NTSC_WEIGHTS[c] * decode[v])))
+    }
+
+    fn of(&self, img: &Rgb8, k: usize) -> f64 {
+        let c = &img.data()[3 * k..3 * k + 3];
+        self.0[0][usize::from(c[0])] + self.0[1][usize::from(c[1])] + self.0[2][usize::from(c[2])]
+    }
+}
+
+/// The local diffuse background of step 3: a summed-area table of the linear luminance of the
+/// valid non-peak pixels over the seeds' bounding box grown by `reach` (a highlight is local;
+/// the rest of the image is never asked).
+struct Background {
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
+    /// (count, Σ luminance) per entry, `(x1 − x0 + 1)` entries a row.
+    table: Vec<(f64, f64)>,
+}
+
+impl Background {
+    fn around(px: &Planes, seeds: &[usize], peak: &[bool], lum: &Luminance, reach: usize) -> Self {
+        let (w, h) = (px.w, px.h);
+        let (bx0, by0, bx1, by1) = seeds.iter().fold((w, h, 0, 0), |(x0, y0, x1, y1), &k| (x0.min(k % w), y0.min(k / w), x1.max(k % w + 1), y1.max(k / w + 1)));
+        let (x0, y0, x1, y1) = (bx0.saturating_sub(reach), by0.saturating_sub(reach), (bx1 + reach).min(w), (by1 + reach).min(h));
+        let bw = x1 - x0;
+        let mut table = vec![(0.0f64, 0.0f64); (bw + 1) * (y1 - y0 + 1)];
+        for y in y0..y1 {
+            let mut row = (0.0, 0.0);
+            for x in x0..x1 {
+                let k = y * w + x;
+                if px.ok(k) && !peak[k] {
+                    row.0 += 1.0;
+                    row.1 += lum.of(px.img, k);
+                }
+                let (ty, tx) = (y - y0, x - x0);
+                let up = table[ty * (bw + 1) + tx + 1];
+                table[(ty + 1) * (bw + 1) + tx + 1] = (up.0 + row.0, up.1 + row.1);
+            }
+        }
+        Self { x0, y0, x1, y1, table }
+    }
+
+    /// The mean luminance of the window about pixel `k` without the peaks (∞ when it has none).
+    fn at(&self, px: &Planes, k: usize) -> f64 {
+        let (bx0, by0, bx1, by1) = (self.x0, self.y0, self.x1, self.y1);
+        let bw = bx1 - bx0;
+        let (x0, y0, x1, y1) = px.window(k);
         let (x0, y0, x1, y1) = (x0.clamp(bx0, bx1) - bx0, y0.clamp(by0, by1) - by0, x1.clamp(bx0, bx1) - bx0, y1.clamp(by0, by1) - by0);
-        let s = |x: usize, y: usize| bg[y * (bw + 1) + x];
+        let s = |x: usize, y: usize| self.table[y * (bw + 1) + x];
         let (a, b, c, d) = (s(x1, y1), s(x0, y1), s(x1, y0), s(x0, y0));
         let m = a.0 + d.0 - b.0 - c.0;
         if m > 0.0 { (a.1 + d.1 - b.1 - c.1) / m } else { f64::INFINITY }
-    };
-    for k in labelled {
-        label[k] = 0;
     }
+}
+
+/// Step 3: growth from the seeds, breadth first, over valid neighbours that are whitened or at
+/// least `grow_ratio` × the local background, at most `max_grow_px` steps. `steps` is all
+/// `u16::MAX` on entry and on return.
+fn grow(px: &Planes, seeds: &[usize], background: &Background, lum: &Luminance, p: &DetectParams, steps: &mut [u16], mask: &mut Mask) {
     let mut queue = std::collections::VecDeque::new();
-    for k in seeds {
-        out.mask.data_mut()[k] = true;
+    for &k in seeds {
+        mask.data_mut()[k] = true;
         steps[k] = 0;
         queue.push_back(k);
     }
@@ -289,20 +314,22 @@ pub fn detect(img: &Rgb8, valid: &Mask, p: &DetectParams, decode: &[f64; 256], s
         if usize::from(steps[k]) >= p.max_grow_px {
             continue;
         }
-        for q in neighbours8(k) {
-            if ok(q) && steps[q] == u16::MAX && (f64::from(saturation[q]) <= p.grow_saturation || lum(q) >= p.grow_ratio * background(q)) {
+        for q in px.neighbours8(k) {
+            if px.ok(q)
+                && steps[q] == u16::MAX
+                && (f64::from(px.saturation[q]) <= p.grow_saturation || lum.of(px.img, q) >= p.grow_ratio * background.at(px, q))
+            {
                 steps[q] = steps[k] + 1;
-                out.mask.data_mut()[q] = true;
+                mask.data_mut()[q] = true;
                 queue.push_back(q);
             }
         }
     }
-    for (k, m) in out.mask.data().iter().enumerate() {
+    for (k, m) in mask.data().iter().enumerate() {
         if *m {
             steps[k] = u16::MAX;
         }
     }
-    out
 }
 
 /// `mask` dilated by a disc of `radius_px` (0 = unchanged), limited to `within`.

@@ -11,6 +11,7 @@
 //! peak with a sharp rim).
 
 pub mod detect;
+mod integral;
 pub mod telea;
 
 use capsule_slam_framework::frame::MASK_SPECULAR;
@@ -23,29 +24,28 @@ use telea::Order;
 capsule_slam_framework::plugin_params! {
     /// Parameters of `reflection`.
     pub struct ReflectionParams {
-        /// Side of the local-statistics window of the adaptive threshold (frontend digest §C:
-        /// block 31–51 px at 1350×1080). 61: the phantom's grazing streaks are up to ~50 px
-        /// long, and a window no larger than the highlight sees only the highlight (preset 7
-        /// recall 0.19 at 31 px, 0.96 at 61).
+        /// Side of the local-statistics window of the adaptive threshold (Arnold et al. 2010,
+        /// "Automatic segmentation and inpainting of specular highlights for endoscopic
+        /// imaging", EURASIP JIVP: 31–51 px at 1350×1080). Larger than the longest highlight,
+        /// or the window sees only the highlight (`docs/results/preprocessing.md`).
         pub window_px: u32 = 61; unit = "px"; range = 3.0..=255.0;
         /// A peak lies this many local standard deviations above the local mean brightness
-        /// (digest §C: k ≈ 2–3; preset 7 recall 0.83 at 1.5, 0.96 at 1, precision 0.92 at
-        /// both: the colour and rim tests keep the precision).
+        /// (Arnold et al. 2010: k ≈ 2–3; 1 here, as the colour and rim tests keep the
+        /// precision).
         pub peak_sigma: f64 = 1.0; unit = "σ"; range = 0.0..=20.0;
-        /// A peak is at least this bright, max(R, G, B) in 8-bit levels (the phantom's small
-        /// highlights deep in the tube are 80–120; 250 keeps only clipped ones, for sensors
-        /// that clip every highlight).
+        /// A peak is at least this bright, max(R, G, B) in 8-bit levels (small highlights deep
+        /// in the tube are 80–120; 250 keeps only clipped ones, for sensors that clip every
+        /// highlight).
         pub min_value: f64 = 60.0; unit = "8-bit"; range = 0.0..=255.0;
         /// A peak is nearly white: saturation 1 − min/max of its channels at most this
-        /// (digest §C: S < ~0.3; the phantom's mucosa has S 0.28–0.43, its highlights
-        /// 0.08–0.23).
+        /// (Arnold et al. 2010: S < ~0.3; mucosa has S 0.28–0.43, its highlights 0.08–0.23).
         pub max_saturation: f64 = 0.22; unit = "-"; range = 0.0..=1.0;
         /// A group of peaks is a highlight only if the mean Sobel magnitude of the brightness on
-        /// its outer ring reaches this (sharp rims; digest §C T_g).
+        /// its outer ring reaches this (sharp rims; Arnold et al. 2010, T_g).
         pub min_rim_gradient: f64 = 2.0; unit = "8-bit/px"; range = 0.0..=255.0;
         /// The highlight extends over neighbours at least this many times brighter (linear
         /// luminance) than the local diffuse background: 2 = where the highlight adds as much
-        /// light as the tissue reflects (the phantom's ground-truth mask).
+        /// light as the tissue reflects (the phantom's ground-truth definition).
         pub grow_ratio: f64 = 2.0; unit = "-"; range = 1.0..=100.0;
         /// The highlight also extends over neighbours whitened to at most this saturation.
         pub grow_saturation: f64 = 0.25; unit = "-"; range = 0.0..=1.0;
@@ -53,8 +53,8 @@ capsule_slam_framework::plugin_params! {
         pub max_grow_px: u32 = 20; unit = "px"; range = 0.0..=255.0;
         /// Margin added around each highlight before inpainting (the halo), pixels.
         pub dilate_px: u32 = 2; unit = "px"; range = 0.0..=32.0;
-        /// Radius of the inpainting neighbourhood (Telea's ε; digest §C: OpenCV's examples use 5;
-        /// on preset 7, 4 gives 30.6 levels RMS against 30.2 at 5, at two thirds of the cost).
+        /// Radius of the inpainting neighbourhood (Telea's ε; OpenCV's examples use 5; 4 is as
+        /// good at two thirds of the cost).
         pub inpaint_radius_px: f64 = 4.0; unit = "px"; range = 1.0..=64.0;
         /// Extrapolation of the inpainting from each known pixel: `zero` (a weighted mean) or
         /// `first` (Telea's eq. 3, exact on ramps, but it carries a highlight's bright halo
@@ -119,12 +119,13 @@ impl Reflection {
 
     /// Detects and inpaints the highlights of one image in place, among the pixels set in
     /// `valid`.
-    pub fn clean(&mut self, img: &mut Rgb8, valid: &Mask) -> Cleaned {
+    /// `valid` of another size than `img` is an error.
+    pub fn clean(&mut self, img: &mut Rgb8, valid: &Mask) -> Result<Cleaned, StageError> {
         let params = self.detect_params();
-        let d = detect(img, valid, &params, &self.decode, &mut self.scratch);
+        let d = detect(img, valid, &params, &self.decode, &mut self.scratch)?;
         let inpainted = dilate(&d.mask, self.params.dilate_px as usize, valid);
-        telea::inpaint(img, &inpainted, valid, self.params.inpaint_radius_px, self.params.inpaint_order);
-        Cleaned { detected: d.mask, inpainted, groups: (d.groups, d.rejected) }
+        telea::inpaint(img, &inpainted, valid, self.params.inpaint_radius_px, self.params.inpaint_order)?;
+        Ok(Cleaned { detected: d.mask, inpainted, groups: (d.groups, d.rejected) })
     }
 }
 
@@ -143,10 +144,16 @@ impl Preprocessor for Reflection {
                 }
                 _ => match ctx.rig.camera() {
                     c if (c.width, c.height) == (w, h) => c.fov_mask(),
-                    _ => Mask::filled(w, h, true),
+                    c => {
+                        ctx.warn(format!(
+                            "frame {}: view {i} is {w}×{h} but the camera {}×{}: its field of view is unknown, every pixel is searched",
+                            frame.index, c.width, c.height
+                        ));
+                        Mask::filled(w, h, true)
+                    }
                 },
             };
-            let out = self.clean(img, &valid);
+            let out = self.clean(img, &valid)?;
             groups += out.groups.0;
             rejected += out.groups.1;
             if i == 0 {

@@ -1,8 +1,8 @@
 use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::frame::{MASK_OUT_OF_VIEW, MASK_SPECULAR};
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec, SizePreset};
 use capsule_slam_framework::{CameraFrame, Context, Mask, PinholeCamera, Preprocessor, Rgb8};
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 
 use super::*;
 
@@ -50,7 +50,7 @@ fn a_rendered_highlight_is_found_to_its_extent() {
     for (sigma, peak) in [(2.0, 1.0), (4.0, 1.5), (7.0, 0.8)] {
         let (mut img, _, truth) = scene(120, 100, 57.0, 44.0, sigma, peak);
         let n_true = truth.data().iter().filter(|v| **v).count();
-        let out = remover().clean(&mut img, &Mask::filled(120, 100, true));
+        let out = remover().clean(&mut img, &Mask::filled(120, 100, true)).unwrap();
         let (p, r) = precision_recall(&out.detected, &truth);
         // Boundary pixels weigh on a 48-pixel highlight: precision 0.89 at σ = 2 px.
         assert!(p >= 0.85 && r >= 0.9, "σ {sigma} px, peak {peak}: precision {p:.3} recall {r:.3} ({n_true} true pixels)");
@@ -62,7 +62,7 @@ fn inpainting_restores_the_diffuse_image_and_touches_nothing_else() {
     let (mut img, diffuse, _) = scene(120, 100, 57.0, 44.0, 4.0, 1.5);
     let before = img.clone();
     let mut r = Reflection::new(ReflectionParams::default());
-    let out = r.clean(&mut img, &Mask::filled(120, 100, true));
+    let out = r.clean(&mut img, &Mask::filled(120, 100, true)).unwrap();
     let (mut sse_after, mut sse_before, mut n) = (0.0, 0.0, 0.0);
     for k in 0..120 * 100 {
         let px = |i: &Rgb8| [i.data()[3 * k], i.data()[3 * k + 1], i.data()[3 * k + 2]];
@@ -85,9 +85,9 @@ fn inpainting_restores_the_diffuse_image_and_touches_nothing_else() {
 fn cleaning_twice_changes_nothing_more() {
     let (mut img, _, _) = scene(120, 100, 57.0, 44.0, 4.0, 1.5);
     let mut r = Reflection::new(ReflectionParams::default());
-    r.clean(&mut img, &Mask::filled(120, 100, true));
+    r.clean(&mut img, &Mask::filled(120, 100, true)).unwrap();
     let once = img.clone();
-    let again = r.clean(&mut img, &Mask::filled(120, 100, true));
+    let again = r.clean(&mut img, &Mask::filled(120, 100, true)).unwrap();
     assert_eq!(again.detected.data().iter().filter(|v| **v).count(), 0);
     assert_eq!(img, once);
 }
@@ -100,7 +100,7 @@ fn bright_red_tissue_and_a_matte_scene_are_not_highlights() {
         let fold = (-((x as f64 - 50.0).powi(2) + (y as f64 - 50.0).powi(2)) / 50.0).exp();
         [enc(0.25 + 0.7 * fold), enc(0.08 + 0.1 * fold), enc(0.07 + 0.08 * fold)]
     });
-    let out = remover().clean(&mut img, &Mask::filled(w, w, true));
+    let out = remover().clean(&mut img, &Mask::filled(w, w, true)).unwrap();
     assert_eq!(out.detected.data().iter().filter(|v| **v).count(), 0);
 }
 
@@ -111,7 +111,7 @@ fn a_phantom_frame_with_heavy_reflections_is_scored_against_its_ground_truth() {
     let ph = Phantom::new(spec).unwrap();
     let f = ph.render(100);
     let mut img = f.rgb.clone();
-    let out = remover().clean(&mut img, &ph.camera.fov_mask());
+    let out = remover().clean(&mut img, &ph.camera.fov_mask()).unwrap();
     let n_true = f.specular.data().iter().filter(|v| **v).count();
     assert!(n_true > 300, "the frame has a highlight ({n_true} px)");
     let (p, r) = precision_recall(&out.detected, &f.specular);
@@ -150,13 +150,13 @@ fn odd_sizes_black_and_saturated_frames_do_not_panic() {
     for (w, h) in [(1, 1), (2, 7), (37, 23), (0, 0)] {
         for v in [0u8, 255, 128] {
             let mut img = Rgb8::filled(w, h, v);
-            let out = r.clean(&mut img, &Mask::filled(w, h, true));
+            let out = r.clean(&mut img, &Mask::filled(w, h, true)).unwrap();
             assert_eq!(out.detected.data().iter().filter(|m| **m).count(), 0, "{w}×{h} filled with {v}");
             assert_eq!(img, Rgb8::filled(w, h, v));
         }
     }
     // A highlight touching the border of an odd-sized image.
     let (mut img, _, _) = scene(37, 23, 0.0, 22.0, 3.0, 1.5);
-    let out = r.clean(&mut img, &Mask::filled(37, 23, true));
+    let out = r.clean(&mut img, &Mask::filled(37, 23, true)).unwrap();
     assert!(out.detected.data().iter().any(|m| *m));
 }

@@ -1,5 +1,5 @@
 //! `vignetting`: divides a radial fall-off out of every view (the paper's step 2; frontend
-//! digest §D). What is divided must agree with the depth model:
+//! Goldman 2010, IEEE TPAMI 32(12)). What is divided must agree with the depth model:
 //!
 //! - `divide = "lens-and-light"` (default): the lens vignetting V and the LED profile μ only,
 //!   keeping the cos θ / r² cue that `near-light-sfs` reads depth from;
@@ -145,12 +145,12 @@ impl Plugin for Vignetting {
             s => s,
         };
         let source = match chosen {
-            Source::Light => FalloffSource::Light(capsule_slam_framework::io::read_light_file(&path(&params.light_file)).map_err(|e| {
+            Source::Light => FalloffSource::Light(capsule_slam_framework::files::read_light_file(&path(&params.light_file)).map_err(|e| {
                 StageError::invalid_input(format!(
                     "{e}; `vignetting` with source = \"light\" needs the capsule's light model: put light.toml in the input folder, or set plugins.vignetting.source = \"file\" (a calibrated vignetting.toml) or \"sequence\""
                 ))
             })?),
-            Source::File => FalloffSource::File(capsule_slam_framework::io::read_vignetting_file(&path(&params.vignetting_file)).map_err(|e| {
+            Source::File => FalloffSource::File(capsule_slam_framework::files::read_vignetting_file(&path(&params.vignetting_file)).map_err(|e| {
                 StageError::invalid_input(format!(
                     "{e}; `vignetting` with source = \"file\" needs a vignetting.toml: `capsule-slam calibrate-vignetting` writes one from flat-field frames, or set plugins.vignetting.source = \"sequence\""
                 ))

@@ -1,5 +1,5 @@
 //! The fall-off estimated from the sequence itself, when there is no calibration (frontend
-//! digest §D: "the temporal median of a long video", lens and light mixed): the trimmed mean linear
+//! Goldman 2010: the vignetting of a video from its own frames, lens and light mixed): the trimmed mean linear
 //! luminance of the usable pixels over cos³α (the flat field's own geometry, known from the
 //! intrinsics) in each of `BINS` rings of r² over the frames seen, fitted by weighted least
 //! squares with `G(r²) = a0 + a1 r² + a2 r⁴ + a3 r⁶` and normalised, `F = G / a0`: the

@@ -1,11 +1,12 @@
+use capsule_slam_calib::fit_flat_field;
+use capsule_slam_eval::depth::depth_error;
 use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::context::StageReport;
-use capsule_slam_framework::eval::depth::depth_error;
 use capsule_slam_framework::frame::{Falloff, MASK_SATURATED};
 use capsule_slam_framework::light::LightModel;
-use capsule_slam_framework::light::vignetting::{cos_alpha, fit_flat_field, flat_field_linear, light_falloff};
-use capsule_slam_framework::phantom::{Phantom, PhantomSpec};
+use capsule_slam_framework::light::vignetting::{cos_alpha, flat_field_linear, light_falloff};
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimator, PinholeCamera, Preprocessor, Rgb8};
+use capsule_slam_phantom::{Phantom, PhantomSpec};
 use rand::{Rng, SeedableRng};
 
 use super::*;
@@ -191,7 +192,7 @@ fn black_saturated_and_wrongly_sized_frames_are_handled() {
 fn near_light_sfs_reads_the_same_depth_from_a_corrected_frame() {
     // The depth model accounts for what was divided: raw, lens-and-light and flat-field
     // corrected frames give the same depth (to the 8-bit rounding of the correction).
-    let spec = PhantomSpec { size: capsule_slam_framework::phantom::SizePreset::NanEye, noise: 0.0, specular: 0.0, ..PhantomSpec::preset(1) };
+    let spec = PhantomSpec { size: capsule_slam_phantom::SizePreset::NanEye, noise: 0.0, specular: 0.0, ..PhantomSpec::preset(1) };
     let ph = Phantom::new(spec).unwrap();
     let f = ph.render(60);
     let rig = Rig::Mono(ph.camera.clone());
@@ -214,7 +215,7 @@ fn near_light_sfs_reads_the_same_depth_from_a_corrected_frame() {
 fn the_shading_model_learns_the_fall_off_inside_a_tube_where_the_mean_cannot() {
     // Phantom preset 2 (the capsule looks along the tube: dark in the middle), with its exact
     // geometry as the map's prediction. Truth: the light model's V · μ.
-    let spec = PhantomSpec { size: capsule_slam_framework::phantom::SizePreset::NanEye, frames: 300, ..PhantomSpec::preset(2) };
+    let spec = PhantomSpec { size: capsule_slam_phantom::SizePreset::NanEye, frames: 300, ..PhantomSpec::preset(2) };
     let ph = Phantom::new(spec).unwrap();
     let c = ph.camera.clone();
     let rig = Rig::Mono(c.clone());

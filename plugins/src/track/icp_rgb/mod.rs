@@ -18,8 +18,8 @@
 //! over many poses, disagrees with the live image; consecutive frames share nearly the same
 //! illumination. The photometric term therefore compares with the previous live frame by
 //! default (`rgb_reference = "previous-frame"`, ElasticFusion's `-ftf` option) while ICP uses
-//! the model; `"model"` is the paper's literal choice. On phantom preset 2 (150 frames, sensor
-//! depth) the model reference gave 0.66 mm ATE against 0.04 mm with ICP alone.
+//! the model; `"model"` is the paper's literal choice, and tracks worse than ICP alone
+//! (`docs/results/tracking.md`).
 //!
 //! Where the prediction has no surface (early frames, newly seen walls), the previous live
 //! frame fills in (ElasticFusion's fill-in). Tracking is declared lost when too few pixels
@@ -85,9 +85,8 @@ capsule_slam_framework::plugin_params! {
         pub sigma_icp_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
         /// Noise scale of the point-to-plane residual for depth estimated from the image
         /// (`near-light-sfs`, `tsai-shah`): its millimetre biases move with the view, so the
-        /// photometric term must carry the tracking. 30 mm ≡ `w_rgb` × 10⁴ against the measured
-        /// scale; on phantom preset 1 (monocular, Sim(3)) 0.3 mm gives 3.9 % of the path,
-        /// 10 mm 2.4 %, 30 mm 1.2 %.
+        /// photometric term must carry the tracking (30 mm ≡ `w_rgb` × 10⁴ against the measured
+        /// scale: the best of 0.3, 10 and 30 mm, `docs/results/tracking.md`).
         pub sigma_icp_estimated_m: f64 = 0.03; unit = "m"; range = 1.0e-7..=1.0;
         /// Noise scale of the intensity residual (intensity in [0, 1]).
         pub sigma_rgb: f64 = 0.02; unit = "-"; range = 1.0e-6..=1.0;
@@ -101,8 +100,8 @@ capsule_slam_framework::plugin_params! {
         pub iterations_l2: u32 = 4; unit = "-"; range = 0.0..=100.0;
         /// Stop a level when the step is below this (‖ξ‖, metres and radians mixed as in the twist).
         pub convergence: f64 = 1.0e-5; unit = "-"; range = 0.0..=1.0;
-        /// Use every n-th pixel of level 0 in x and y (ElasticFusion: 1, all). 2 tracks the
-        /// phantom presets to the same ATE (within 0.002 mm) 1.6× faster.
+        /// Use every n-th pixel of level 0 in x and y (ElasticFusion: 1, all; 2 tracks as well,
+        /// 1.6× faster, `docs/results/tracking.md`).
         pub stride_l0: u32 = 2; unit = "px"; range = 1.0..=8.0;
         /// ICP correspondence distance gate (ElasticFusion: 0.10 m, room scale).
         pub icp_gate_m: f64 = 0.004; unit = "m"; range = 0.0..=10.0;
@@ -128,8 +127,7 @@ capsule_slam_framework::plugin_params! {
         pub min_inlier_fraction: f64 = 0.2; unit = "-"; range = 0.0..=1.0;
         /// The same for estimated depth. Its ICP inliers measure how well shape from shading
         /// agrees with the map, not the pose: 0 (off) keeps tracking through the frames where
-        /// they disagree (monocular Sim(3) ATE on preset 3: 9.1 → 5.7 % of path, 6: 5.3 → 3.8 %,
-        /// 7: 4.0 → 3.5 %; presets 1, 2 unchanged).
+        /// they disagree (`docs/results/tracking.md`).
         pub min_inlier_fraction_estimated: f64 = 0.0; unit = "-"; range = 0.0..=1.0;
         /// Lost if the ICP RMS residual exceeds this (measured depth).
         pub max_residual_m: f64 = 0.0015; unit = "m"; range = 0.0..=10.0;
@@ -259,33 +257,7 @@ impl IcpRgb {
         let noise = self.depth_noise(frame.depth_source);
         let w = self.weights(&noise);
         let initial = initial.then(|| accumulate(&live[0], &reference[0], &photo[0], &prior, &w, self.params.stride_l0 as usize).icp_rms());
-        let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
-        let mut t = prior;
-        let mut total_iters = 0;
-        // Quality figures come from the last level-0 system (ElasticFusion's convention).
-        let mut fin = None;
-        for level in (0..LEVELS).rev() {
-            let stride = if level == 0 { self.params.stride_l0 as usize } else { 1 };
-            for _ in 0..iters[level] {
-                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, &w, stride);
-                if level == 0 {
-                    fin = Some(sys);
-                }
-                let Some(delta) = sys.step() else { break };
-                if !delta.iter().all(|v| v.is_finite()) {
-                    break;
-                }
-                t = capsule_slam_framework::geometry::exp_se3(&delta) * t;
-                total_iters += 1;
-                if delta.norm() < self.params.convergence {
-                    break;
-                }
-            }
-        }
-        let fin = match fin {
-            Some(f) => f,
-            None => accumulate(&live[0], &reference[0], &photo[0], &t, &w, self.params.stride_l0 as usize),
-        };
+        let (t, total_iters, fin) = self.coarse_to_fine(&live, &reference, photo, prior, &w);
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
@@ -311,6 +283,37 @@ impl IcpRgb {
             iterations: total_iters as usize,
         };
         Ok((result, initial))
+    }
+
+    /// Gauss-Newton on the pyramid from the coarsest level, starting at `prior` (Eqs. 2–4):
+    /// the pose increment, the iterations run and the last level-0 system, whose figures judge
+    /// the result (ElasticFusion's convention).
+    fn coarse_to_fine(&self, live: &[Level], reference: &[Level], photo: &[Level], prior: Iso3, w: &Weights) -> (Iso3, u32, gn::System) {
+        let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
+        let stride_l0 = self.params.stride_l0 as usize;
+        let mut t = prior;
+        let mut total_iters = 0;
+        let mut fin = None;
+        for level in (0..LEVELS).rev() {
+            let stride = if level == 0 { stride_l0 } else { 1 };
+            for _ in 0..iters[level] {
+                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, w, stride);
+                if level == 0 {
+                    fin = Some(sys);
+                }
+                let Some(delta) = sys.step() else { break };
+                if !delta.iter().all(|v| v.is_finite()) {
+                    break;
+                }
+                t = capsule_slam_framework::geometry::exp_se3(&delta) * t;
+                total_iters += 1;
+                if delta.norm() < self.params.convergence {
+                    break;
+                }
+            }
+        }
+        let fin = fin.unwrap_or_else(|| accumulate(&live[0], &reference[0], &photo[0], &t, w, stride_l0));
+        (t, total_iters, fin)
     }
 }
 

@@ -7,7 +7,7 @@ use nalgebra::Vector6;
 use super::{IcpRgb, IcpRgbParams};
 use crate::testing::{phantom, rgbd, rig};
 
-fn tracker(p: IcpRgbParams, ph: &capsule_slam_framework::phantom::Phantom) -> IcpRgb {
+fn tracker(p: IcpRgbParams, ph: &capsule_slam_phantom::Phantom) -> IcpRgb {
     IcpRgb::build(p, &BuildEnv::new(rig(ph), None)).unwrap()
 }
 

@@ -1,0 +1,415 @@
+//! The host side of the C ABI: opens a library with `libloading`, checks its ABI version
+//! before reading anything else, validates each plugin's declaration, and wraps each one as a
+//! registry entry whose stages call through the ABI.
+#![allow(unsafe_code)]
+
+use std::ffi::{CStr, CString, c_char, c_void};
+use std::path::{Path, PathBuf};
+
+use super::{
+    ABI_VERSION, AbiBuffer, AbiCamera, AbiImage, AbiPlugin, AbiPluginList, DepthFn, ENTRY_SYMBOL, EntryFn, KIND_DEPTH_ESTIMATOR, KIND_PREPROCESSOR, OK, PANIC,
+    ParamDocsToml, PreprocessFn, ProblemsToml,
+};
+use capsule_slam_framework::context::Context;
+use capsule_slam_framework::error::{ConfigProblem, RegistryError, StageError};
+use capsule_slam_framework::frame::CameraFrame;
+use capsule_slam_framework::image::{DepthMap, Mask};
+use capsule_slam_framework::params::ParamDoc;
+use capsule_slam_framework::registry::{BuildEnv, BuildError, ForeignPlugin, PluginEntry, Registry, Stage, StageKind};
+use capsule_slam_framework::stage::{DepthEstimate, DepthEstimator, Preprocessor};
+
+/// Size of the buffer for a stage's error message, bytes (a longer message is cut).
+const MESSAGE_BYTES: usize = 4096;
+/// Largest text (parameter docs, problems) the host accepts from a library, bytes.
+const MAX_TEXT_BYTES: usize = 1 << 20;
+
+/// A plugin loaded from a library. Lives for the whole process, as its library does.
+#[derive(Debug)]
+pub struct LoadedPlugin {
+    /// Registry name.
+    pub name: &'static str,
+    /// One line on what it does.
+    pub summary: &'static str,
+    /// Its stage.
+    pub kind: StageKind,
+    /// Its parameters.
+    pub params: Vec<ParamDoc>,
+    /// The library file.
+    pub library: PathBuf,
+    raw: AbiPlugin,
+}
+
+// SAFETY: `raw` holds pointers to the library's immutable static strings and its functions;
+// the library is never unloaded, and the ABI requires its functions to be callable from any
+// thread (a stage's state is used by one thread at a time: see `LibraryStage`).
+unsafe impl Send for LoadedPlugin {}
+// SAFETY: as above; nothing in it is ever written after loading.
+unsafe impl Sync for LoadedPlugin {}
+
+fn library_error(path: &Path, message: impl Into<String>, fix: impl Into<String>) -> RegistryError {
+    RegistryError::Library { path: path.to_path_buf(), message: message.into(), fix: fix.into() }
+}
+
+/// Loads the plugins of the shared library at `path` and registers them; returns their names.
+/// The library stays loaded for the life of the process.
+pub fn load_library(registry: &mut Registry, path: &Path) -> Result<Vec<&'static str>, RegistryError> {
+    let mut names = Vec::new();
+    for p in load(path)? {
+        registry.register(PluginEntry::foreign(p))?;
+        names.push(p.name);
+    }
+    Ok(names)
+}
+
+/// Opens the library at `path` and returns its plugins. The library is never unloaded.
+pub fn load(path: &Path) -> Result<Vec<&'static LoadedPlugin>, RegistryError> {
+    if !path.is_file() {
+        return Err(library_error(
+            path,
+            "no such file",
+            "build the plugin library (e.g. `cargo build --release -p capsule-slam-dylib-example`) and pass the path of its lib*.so / *.dylib / *.dll",
+        ));
+    }
+    // SAFETY: loading a library runs its initialisers; the user asked for this library.
+    let lib = unsafe { libloading::Library::new(path) }
+        .map_err(|e| library_error(path, format!("cannot be opened as a shared library: {e}"), "pass a shared library built for this platform"))?;
+    // SAFETY: the symbol, if present, is an `EntryFn` by the ABI contract.
+    let entry: EntryFn = unsafe { lib.get::<EntryFn>(ENTRY_SYMBOL) }.map(|s| *s).map_err(|_| {
+        library_error(
+            path,
+            "it is not a capsule-slam plugin library: it exports no `capsule_slam_plugins`",
+            "export the plugins with `capsule_slam_abi::export_plugins!` in a crate of type cdylib",
+        )
+    })?;
+    // Never unloaded: the entries keep its function pointers (dlclose while one is alive is
+    // undefined behaviour).
+    std::mem::forget(lib);
+    // SAFETY: the entry function takes nothing and returns a pointer to static data.
+    let list = unsafe { entry() };
+    // SAFETY: a non-null pointer from the entry points to a list that lives as long as the
+    // library; its first field is read alone before the version is known to match.
+    let list = unsafe { list_of(list, path)? };
+    let plugins = unsafe { plugins_of(list, path)? };
+    Ok(plugins.into_iter().map(|p| &*Box::leak(Box::new(p))).collect())
+}
+
+/// The list, once its ABI version is known to match.
+///
+/// # Safety
+/// `list` is null or points to a readable `u32` that, if it equals [`ABI_VERSION`], begins a
+/// valid [`AbiPluginList`] that lives for the rest of the process.
+pub(crate) unsafe fn list_of(list: *const AbiPluginList, path: &Path) -> Result<&'static AbiPluginList, RegistryError> {
+    if list.is_null() {
+        return Err(library_error(path, "its `capsule_slam_plugins` returned no plugin list", "return the list made by `export_plugins!`"));
+    }
+    // SAFETY: the first field is a u32 in every ABI version.
+    let version = unsafe { *list.cast::<u32>() };
+    if version != ABI_VERSION {
+        return Err(library_error(
+            path,
+            format!("it was built for plugin ABI version {version}; this capsule-slam speaks version {ABI_VERSION} (framework {})", env!("CARGO_PKG_VERSION")),
+            "rebuild the plugin against this capsule-slam framework",
+        ));
+    }
+    // SAFETY: the version matches, so the layout is this one.
+    Ok(unsafe { &*list })
+}
+
+/// A NUL-terminated UTF-8 string from the library, leaked (it is read once per load).
+///
+/// # Safety
+/// `text` is null or NUL-terminated.
+unsafe fn lib_str(text: *const c_char, path: &Path, what: &str) -> Result<&'static str, RegistryError> {
+    if text.is_null() {
+        return Err(library_error(path, format!("a plugin has no {what}"), format!("set the plugin's {what}")));
+    }
+    // SAFETY: the caller's contract.
+    let s = unsafe { CStr::from_ptr(text) }.to_str().map_err(|_| library_error(path, format!("a plugin's {what} is not UTF-8"), "use UTF-8"))?;
+    Ok(Box::leak(s.to_owned().into_boxed_str()))
+}
+
+/// Validates the plugins of a list and reads their parameter docs.
+///
+/// # Safety
+/// `list.plugins` points to `list.count` valid [`AbiPlugin`]s with valid strings and functions.
+pub(crate) unsafe fn plugins_of(list: &AbiPluginList, path: &Path) -> Result<Vec<LoadedPlugin>, RegistryError> {
+    if list.count == 0 || list.plugins.is_null() {
+        return Err(library_error(path, "it declares no plugins", "list at least one plugin in `export_plugins!`"));
+    }
+    // SAFETY: the caller's contract.
+    let raw = unsafe { std::slice::from_raw_parts(list.plugins, list.count) };
+    let mut out = Vec::with_capacity(raw.len());
+    for p in raw {
+        // SAFETY: the caller's contract.
+        let name = unsafe { lib_str(p.name, path, "name")? };
+        // SAFETY: the caller's contract.
+        let summary = unsafe { lib_str(p.summary, path, "summary")? };
+        if name.is_empty() || !name.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-') {
+            return Err(library_error(path, format!("plugin name `{name}` is not kebab-case"), "name it with lower-case letters, digits and '-'"));
+        }
+        let kind = match (p.kind, p.preprocess.is_some(), p.estimate_depth.is_some()) {
+            (KIND_PREPROCESSOR, true, false) => StageKind::Preprocessor,
+            (KIND_DEPTH_ESTIMATOR, false, true) => StageKind::DepthEstimator,
+            (KIND_PREPROCESSOR | KIND_DEPTH_ESTIMATOR, _, _) => {
+                return Err(library_error(
+                    path,
+                    format!("plugin `{name}` declares kind {} but not exactly its one stage function", p.kind),
+                    "set `preprocess` for a preprocessor, `estimate_depth` for a depth estimator, and not the other",
+                ));
+            }
+            (k, _, _) => {
+                return Err(library_error(
+                    path,
+                    format!("plugin `{name}` has unknown kind {k}"),
+                    format!("use {KIND_PREPROCESSOR} (preprocessor) or {KIND_DEPTH_ESTIMATOR} (depth estimator)"),
+                ));
+            }
+        };
+        // SAFETY: the caller's contract; null input asks for the docs.
+        let (rc, text) = unsafe { call_text(p.params, std::ptr::null()) };
+        if rc != OK {
+            return Err(library_error(path, format!("plugin `{name}` failed to describe its parameters: {text}"), "fix the plugin's parameter docs"));
+        }
+        let docs: ParamDocsToml = toml::from_str(&text).map_err(|e| {
+            library_error(path, format!("plugin `{name}` described its parameters in unreadable TOML: {e}"), "write [[param]] tables (abi::ParamDocsToml)")
+        })?;
+        let params = docs
+            .param
+            .into_iter()
+            .map(|d| ParamDoc {
+                name: Box::leak(d.name.into_boxed_str()),
+                unit: Box::leak(d.unit.into_boxed_str()),
+                doc: d.doc,
+                default: d.default,
+                range: d.range.map(|[lo, hi]| (lo, hi)),
+            })
+            .collect();
+        out.push(LoadedPlugin { name, summary, kind, params, library: path.to_path_buf(), raw: *p });
+    }
+    Ok(out)
+}
+
+/// Calls a text function with a buffer big enough for its answer.
+///
+/// # Safety
+/// `f` is a [`super::TextFn`] of a loaded library; `input` is null or NUL-terminated.
+unsafe fn call_text(f: super::TextFn, input: *const c_char) -> (i32, String) {
+    let mut capacity = 16 * 1024;
+    loop {
+        let mut bytes = vec![0u8; capacity];
+        let mut buf = AbiBuffer { data: bytes.as_mut_ptr(), capacity, len: 0 };
+        // SAFETY: the caller's contract; the buffer is ours and holds `capacity` bytes.
+        let rc = unsafe { f(input, &mut buf) };
+        if buf.len > capacity && buf.len <= MAX_TEXT_BYTES {
+            capacity = buf.len;
+            continue;
+        }
+        bytes.truncate(buf.len.min(capacity));
+        return (rc, String::from_utf8_lossy(&bytes).into_owned());
+    }
+}
+
+impl ForeignPlugin for LoadedPlugin {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+    fn summary(&self) -> &'static str {
+        self.summary
+    }
+    fn kind(&self) -> StageKind {
+        self.kind
+    }
+    fn param_docs(&self) -> Vec<ParamDoc> {
+        self.params.clone()
+    }
+    fn check(&self, table: &toml::Table) -> Vec<ConfigProblem> {
+        self.check_table(table)
+    }
+    fn build(&'static self, table: &toml::Table, env: &BuildEnv) -> Result<Stage, BuildError> {
+        self.build_stage(table, env)
+    }
+    fn origin(&self) -> &Path {
+        &self.library
+    }
+}
+
+impl LoadedPlugin {
+    fn params_text(&self, table: &toml::Table) -> Result<CString, ConfigProblem> {
+        let text = toml::to_string(table).map_err(|e| ConfigProblem::new(format!("plugins.{}", self.name), e.to_string(), "write plain TOML values"))?;
+        CString::new(text).map_err(|_| ConfigProblem::new(format!("plugins.{}", self.name), "a value holds a NUL character", "remove it"))
+    }
+
+    /// The problems of a parameter table, as the plugin reports them.
+    fn check_table(&self, table: &toml::Table) -> Vec<ConfigProblem> {
+        let text = match self.params_text(table) {
+            Ok(t) => t,
+            Err(p) => return vec![p],
+        };
+        // SAFETY: a text function of a loaded library, with a NUL-terminated input.
+        let (rc, answer) = unsafe { call_text(self.raw.check, text.as_ptr()) };
+        let key = format!("plugins.{}", self.name);
+        if rc != OK {
+            return vec![ConfigProblem::new(
+                key,
+                format!("the plugin failed to check its parameters: {answer}"),
+                format!("see the plugin library {}", self.library.display()),
+            )];
+        }
+        if answer.trim().is_empty() {
+            return Vec::new();
+        }
+        match toml::from_str::<ProblemsToml>(&answer) {
+            Ok(p) => p.problem,
+            Err(e) => vec![ConfigProblem::new(key, format!("the plugin answered its check in unreadable TOML: {e}"), "fix the plugin (abi::ProblemsToml)")],
+        }
+    }
+
+    /// Builds a stage through the library's `create`.
+    fn build_stage(&'static self, table: &toml::Table, env: &BuildEnv) -> Result<Stage, BuildError> {
+        let problems = self.check_table(table);
+        if !problems.is_empty() {
+            return Err(BuildError::Params(problems));
+        }
+        let text = self.params_text(table).map_err(|p| BuildError::Params(vec![p]))?;
+        let cam = env.rig.camera();
+        let k = cam.distortion.map_or([0.0; 5], |d| [d.k1, d.k2, d.p1, d.p2, d.k3]);
+        let to_u32 = |v: usize| u32::try_from(v).map_err(|_| StageError::invalid_input(format!("the image is too large for the plugin ABI ({v} pixels)")));
+        let camera = AbiCamera {
+            width: to_u32(cam.width)?,
+            height: to_u32(cam.height)?,
+            fx: cam.fx,
+            fy: cam.fy,
+            cx: cam.cx,
+            cy: cam.cy,
+            fov_radius_px: cam.fov_radius_px.unwrap_or(0.0),
+            distortion: k,
+        };
+        let mut state: *mut c_void = std::ptr::null_mut();
+        let mut message = Message::new();
+        // SAFETY: the library's create, with a NUL-terminated table, a camera, a state slot and
+        // a message buffer that all outlive the call.
+        let rc = unsafe { (self.raw.create)(text.as_ptr(), &camera, &mut state, message.buffer()) };
+        if rc != OK || state.is_null() {
+            return Err(BuildError::Stage(self.error(rc, &message, "creating the stage")));
+        }
+        let stage = LibraryStage { plugin: self, state };
+        Ok(match self.kind {
+            StageKind::Preprocessor => Stage::Preprocessor(Box::new(stage)),
+            _ => Stage::DepthEstimator(Box::new(stage)),
+        })
+    }
+
+    fn error(&self, rc: i32, message: &Message, doing: &str) -> StageError {
+        let what = if rc == PANIC { "panicked" } else { "failed" };
+        let text = message.text();
+        let text = if text.is_empty() { format!("{doing} {what} (code {rc}, no message)") } else { format!("{doing} {what}: {text}") };
+        StageError::Plugin { name: self.name.to_owned(), source: text.into() }
+    }
+}
+
+/// A message buffer for one call.
+struct Message {
+    bytes: Vec<u8>,
+    buf: AbiBuffer,
+}
+
+impl Message {
+    fn new() -> Box<Self> {
+        let mut m = Box::new(Self { bytes: vec![0; MESSAGE_BYTES], buf: AbiBuffer { data: std::ptr::null_mut(), capacity: MESSAGE_BYTES, len: 0 } });
+        m.buf.data = m.bytes.as_mut_ptr();
+        m
+    }
+    fn buffer(&mut self) -> *mut AbiBuffer {
+        &mut self.buf
+    }
+    fn text(&self) -> String {
+        let n = self.buf.len.min(self.buf.capacity);
+        let cut = if self.buf.len > self.buf.capacity { " [...]" } else { "" };
+        format!("{}{cut}", String::from_utf8_lossy(&self.bytes[..n]).trim())
+    }
+}
+
+/// A stage whose code is in a library.
+struct LibraryStage {
+    plugin: &'static LoadedPlugin,
+    state: *mut c_void,
+}
+
+// SAFETY: the ABI requires a state to be usable from any thread, one at a time; the pipeline
+// owns the stage and calls it through `&mut self`, so never from two threads at once.
+unsafe impl Send for LibraryStage {}
+
+impl Drop for LibraryStage {
+    fn drop(&mut self) {
+        // SAFETY: the state came from this plugin's create and is freed once.
+        unsafe { (self.plugin.raw.destroy)(self.state) };
+    }
+}
+
+impl LibraryStage {
+    fn preprocess_fn(&self) -> Result<PreprocessFn, StageError> {
+        self.plugin.raw.preprocess.ok_or_else(|| StageError::invalid_input(format!("`{}` is not a preprocessor", self.plugin.name)))
+    }
+    fn depth_fn(&self) -> Result<DepthFn, StageError> {
+        self.plugin.raw.estimate_depth.ok_or_else(|| StageError::invalid_input(format!("`{}` is not a depth estimator", self.plugin.name)))
+    }
+}
+
+impl Preprocessor for LibraryStage {
+    fn process(&mut self, frame: &mut CameraFrame, _ctx: &mut Context) -> Result<(), StageError> {
+        let f = self.preprocess_fn()?;
+        let mut union: Option<Mask> = None;
+        for view in frame.views.iter_mut() {
+            let (w, h) = view.size();
+            let mut mask = vec![0u8; w * h];
+            let mut image = AbiImage { width: w as u32, height: h as u32, data: view.data_mut().as_mut_ptr() };
+            let mut message = Message::new();
+            // SAFETY: the library's preprocess with its own state, the view's pixels
+            // (3·w·h bytes), a w·h mask and a message buffer, all alive during the call.
+            let rc = unsafe { f(self.state, &mut image, mask.as_mut_ptr(), message.buffer()) };
+            if rc != OK {
+                return Err(self.plugin.error(rc, &message, &format!("frame {}", frame.index)));
+            }
+            if mask.iter().any(|&m| m != 0) {
+                let m = union.get_or_insert_with(|| Mask::new(w, h));
+                if m.size() == (w, h) {
+                    for (o, &v) in m.data_mut().iter_mut().zip(&mask) {
+                        *o |= v != 0;
+                    }
+                }
+            }
+        }
+        if let Some(m) = union {
+            frame.masks.insert(self.plugin.name, m);
+        }
+        Ok(())
+    }
+}
+
+impl DepthEstimator for LibraryStage {
+    fn estimate(&mut self, frame: &CameraFrame, _ctx: &mut Context) -> Result<DepthEstimate, StageError> {
+        let f = self.depth_fn()?;
+        let reference = frame.views.reference();
+        let (w, h) = reference.size();
+        // The ABI's image is mutable for preprocessors; a depth estimator gets a copy.
+        let mut pixels = reference.data().to_vec();
+        let image = AbiImage { width: w as u32, height: h as u32, data: pixels.as_mut_ptr() };
+        let mut depth = DepthMap::new(w, h);
+        let mut message = Message::new();
+        // SAFETY: the library's estimate_depth with its own state, a copy of the pixels, a
+        // w·h depth buffer and a message buffer, all alive during the call.
+        let rc = unsafe { f(self.state, &image, depth.data_mut().as_mut_ptr(), message.buffer()) };
+        if rc != OK {
+            return Err(self.plugin.error(rc, &message, &format!("frame {}", frame.index)));
+        }
+        if let Some(i) = depth.data().iter().position(|d| !d.is_finite() || *d < 0.0) {
+            let (x, y) = (i % w, i / w);
+            let v = depth.data()[i];
+            return Err(StageError::Plugin {
+                name: self.plugin.name.to_owned(),
+                source: format!("frame {}: depth {v} m at pixel ({x}, {y}); depth must be finite and ≥ 0 (0 = invalid)", frame.index).into(),
+            });
+        }
+        Ok(DepthEstimate::depth_only(depth))
+    }
+}

@@ -1,0 +1,354 @@
+//! Pinhole camera with optional Brown–Conrady distortion and a round field-of-view mask, and
+//! the rig (mono or stereo). Pixel centres are at integer coordinates; x right, y down,
+//! z forward (the optical axis).
+
+use nalgebra::{Point2, Point3};
+use serde::{Deserialize, Serialize};
+
+use crate::error::ConfigProblem;
+use crate::image::Mask;
+
+/// The intrinsics file of an input folder, `camera.toml`; the `[camera]` config section has the
+/// same schema. Other tools write it, so its keys are fixed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraFile {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Focal length along x, pixels.
+    pub fx: f64,
+    /// Focal length along y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Depth PNG units per metre (TUM: 5000).
+    #[serde(default = "default_depth_scale")]
+    pub depth_scale: f64,
+    /// Brown–Conrady coefficients k1 k2 p1 p2 k3 (OpenCV order).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<[f64; 5]>,
+    /// Radius of the round field of view about (cx, cy), pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fov_radius_px: Option<f64>,
+    /// Stereo baseline in metres (right camera at +x); absent for a mono capsule.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baseline_m: Option<f64>,
+}
+
+fn default_depth_scale() -> f64 {
+    5000.0
+}
+
+impl CameraFile {
+    /// Checks every field and returns every problem, keys prefixed with `prefix`.
+    pub fn problems(&self, prefix: &str) -> Vec<ConfigProblem> {
+        let mut out = Vec::new();
+        let mut check = |key: &str, ok: bool, msg: String, fix: &str| {
+            if !ok {
+                out.push(ConfigProblem::new(format!("{prefix}{key}"), msg, fix));
+            }
+        };
+        check("width", self.width > 0, "width is 0".into(), "give the image width in pixels");
+        check("height", self.height > 0, "height is 0".into(), "give the image height in pixels");
+        for (key, v) in [("fx", self.fx), ("fy", self.fy)] {
+            check(key, v.is_finite() && v > 0.0, format!("{key} = {v} must be a positive focal length"), "give the focal length in pixels");
+        }
+        for (key, v) in [("cx", self.cx), ("cy", self.cy)] {
+            check(key, v.is_finite(), format!("{key} = {v} is not finite"), "give the principal point in pixels");
+        }
+        check(
+            "depth_scale",
+            self.depth_scale.is_finite() && self.depth_scale > 0.0,
+            format!("depth_scale = {} must be positive", self.depth_scale),
+            "give depth PNG units per metre (TUM: 5000)",
+        );
+        if let Some(d) = self.distortion {
+            check("distortion", d.iter().all(|v| v.is_finite()), "distortion has a non-finite value".into(), "give five finite numbers k1 k2 p1 p2 k3");
+        }
+        if let Some(r) = self.fov_radius_px {
+            check(
+                "fov_radius_px",
+                r.is_finite() && r > 0.0,
+                format!("fov_radius_px = {r} must be positive"),
+                "give the field-of-view radius in pixels, or remove the key",
+            );
+        }
+        if let Some(b) = self.baseline_m {
+            check(
+                "baseline_m",
+                b.is_finite() && b > 0.0,
+                format!("baseline_m = {b} must be positive"),
+                "give the stereo baseline in metres, or remove the key for a mono rig",
+            );
+        }
+        out
+    }
+
+    /// The camera described by this file (call [`CameraFile::problems`] first).
+    pub fn camera(&self) -> PinholeCamera {
+        PinholeCamera {
+            width: self.width as usize,
+            height: self.height as usize,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            distortion: self.distortion.map(BrownConrady::from_array).filter(|d| !d.is_zero()),
+            fov_radius_px: self.fov_radius_px,
+        }
+    }
+
+    /// The rig: stereo when a baseline is given, mono otherwise.
+    pub fn rig(&self) -> Rig {
+        let camera = self.camera();
+        match self.baseline_m {
+            Some(baseline_m) => Rig::Stereo { right: camera.clone(), left: camera, baseline_m },
+            None => Rig::Mono(camera),
+        }
+    }
+}
+
+/// Brown–Conrady lens distortion (OpenCV's model): radial k1 k2 k3, tangential p1 p2.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BrownConrady {
+    /// Radial r².
+    pub k1: f64,
+    /// Radial r⁴.
+    pub k2: f64,
+    /// Tangential 1.
+    pub p1: f64,
+    /// Tangential 2.
+    pub p2: f64,
+    /// Radial r⁶.
+    pub k3: f64,
+}
+
+impl BrownConrady {
+    /// From `[k1, k2, p1, p2, k3]`.
+    pub fn from_array(a: [f64; 5]) -> Self {
+        Self { k1: a[0], k2: a[1], p1: a[2], p2: a[3], k3: a[4] }
+    }
+
+    /// Whether all coefficients are zero.
+    pub fn is_zero(&self) -> bool {
+        [self.k1, self.k2, self.p1, self.p2, self.k3].iter().all(|v| *v == 0.0)
+    }
+
+    /// Distorts normalised image coordinates (x/z, y/z).
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+        let xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
+        (xd, yd)
+    }
+
+    /// Inverts [`BrownConrady::distort`] by fixed-point iteration (20 steps; converges for the
+    /// moderate distortion of capsule lenses within their field of view).
+    pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..20 {
+            let (dx, dy) = self.distort(x, y);
+            x -= dx - xd;
+            y -= dy - yd;
+        }
+        (x, y)
+    }
+}
+
+/// A pinhole camera. Images fed to the pipeline are taken as undistorted unless a stage says
+/// otherwise; `distortion` describes the lens for stages that model it (the phantom renderer,
+/// an undistortion preprocessor).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PinholeCamera {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Focal length x, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Lens distortion, if any.
+    pub distortion: Option<BrownConrady>,
+    /// Radius of the round field of view about (cx, cy), pixels.
+    pub fov_radius_px: Option<f64>,
+}
+
+impl PinholeCamera {
+    /// An undistorted camera with the full rectangle as field of view.
+    pub fn new(width: usize, height: usize, fx: f64, fy: f64, cx: f64, cy: f64) -> Self {
+        Self { width, height, fx, fy, cx, cy, distortion: None, fov_radius_px: None }
+    }
+
+    /// Projects a camera-frame point with the pinhole model (no distortion); `None` behind the
+    /// camera.
+    pub fn project(&self, p_cam: &Point3<f64>) -> Option<Point2<f64>> {
+        (p_cam.z > 0.0).then(|| Point2::new(self.fx * p_cam.x / p_cam.z + self.cx, self.fy * p_cam.y / p_cam.z + self.cy))
+    }
+
+    /// Projects a camera-frame point through the lens (with distortion when present).
+    pub fn project_distorted(&self, p_cam: &Point3<f64>) -> Option<Point2<f64>> {
+        if p_cam.z <= 0.0 {
+            return None;
+        }
+        let (mut x, mut y) = (p_cam.x / p_cam.z, p_cam.y / p_cam.z);
+        if let Some(d) = &self.distortion {
+            (x, y) = d.distort(x, y);
+        }
+        Some(Point2::new(self.fx * x + self.cx, self.fy * y + self.cy))
+    }
+
+    /// Back-projects pixel `(u, v)` at depth `depth_m` (z, metres): `p = K⁻¹ [u v 1]ᵀ d`
+    /// (the paper's back-projection, Sec. 3.3).
+    pub fn unproject(&self, u: f64, v: f64, depth_m: f64) -> Point3<f64> {
+        Point3::new((u - self.cx) / self.fx * depth_m, (v - self.cy) / self.fy * depth_m, depth_m)
+    }
+
+    /// Whether pixel `(u, v)` lies in the image and inside the round field of view.
+    pub fn in_fov(&self, u: f64, v: f64) -> bool {
+        let inside = u > -0.5 && v > -0.5 && u < self.width as f64 - 0.5 && v < self.height as f64 - 0.5;
+        inside
+            && self.fov_radius_px.is_none_or(|r| {
+                let (du, dv) = (u - self.cx, v - self.cy);
+                du * du + dv * dv <= r * r
+            })
+    }
+
+    /// The field-of-view mask: `true` inside the round field of view.
+    pub fn fov_mask(&self) -> Mask {
+        Mask::from_fn(self.width, self.height, |x, y| [self.in_fov(x as f64, y as f64)])
+    }
+
+    /// Half the image diagonal, pixels: the radius normaliser of vignetting and of
+    /// ElasticFusion's confidence (which hard-codes 400 px for 640×480).
+    pub fn half_diagonal_px(&self) -> f64 {
+        0.5 * ((self.width * self.width + self.height * self.height) as f64).sqrt()
+    }
+
+    /// The camera of a pyramid level downsampled by `2^level` (fx/2^l, cx/2^l as in
+    /// ElasticFusion's pyramid; sizes rounded down).
+    pub fn pyramid_level(&self, level: u32) -> Self {
+        let s = f64::from(1u32 << level);
+        Self {
+            width: self.width >> level,
+            height: self.height >> level,
+            fx: self.fx / s,
+            fy: self.fy / s,
+            cx: self.cx / s,
+            cy: self.cy / s,
+            distortion: self.distortion,
+            fov_radius_px: self.fov_radius_px.map(|r| r / s),
+        }
+    }
+}
+
+/// Which views a depth estimator needs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ViewKind {
+    /// One image.
+    Mono,
+    /// A rectified stereo pair.
+    Stereo,
+}
+
+/// The capsule's cameras.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Rig {
+    /// One camera.
+    Mono(PinholeCamera),
+    /// A rectified stereo pair; `left` is the reference camera of the map.
+    Stereo {
+        /// Reference camera.
+        left: PinholeCamera,
+        /// Second camera, `baseline_m` along +x of the left one.
+        right: PinholeCamera,
+        /// Baseline, metres.
+        baseline_m: f64,
+    },
+}
+
+impl Rig {
+    /// The reference camera (the only one for mono; the left for stereo).
+    pub fn camera(&self) -> &PinholeCamera {
+        match self {
+            Rig::Mono(c) => c,
+            Rig::Stereo { left, .. } => left,
+        }
+    }
+
+    /// Mono or stereo.
+    pub fn kind(&self) -> ViewKind {
+        match self {
+            Rig::Mono(_) => ViewKind::Mono,
+            Rig::Stereo { .. } => ViewKind::Stereo,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn cam() -> PinholeCamera {
+        PinholeCamera::new(320, 320, 160.0, 160.0, 159.5, 159.5)
+    }
+
+    proptest! {
+        #[test]
+        fn project_unproject_roundtrip(u in 0.0f64..320.0, v in 0.0f64..320.0, d in 0.005f64..0.2) {
+            let c = cam();
+            let p = c.unproject(u, v, d);
+            let q = c.project(&p).unwrap();
+            prop_assert!((q.x - u).abs() < 1e-9 && (q.y - v).abs() < 1e-9);
+        }
+
+        #[test]
+        fn undistort_inverts_distort(x in -0.6f64..0.6, y in -0.6f64..0.6) {
+            let d = BrownConrady { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.001, k3: 0.0 };
+            let (xd, yd) = d.distort(x, y);
+            let (xu, yu) = d.undistort(xd, yd);
+            prop_assert!((xu - x).abs() < 1e-8 && (yu - y).abs() < 1e-8);
+        }
+    }
+
+    #[test]
+    fn fov_mask_is_round() {
+        let mut c = cam();
+        c.fov_radius_px = Some(100.0);
+        let m = c.fov_mask();
+        assert!(m.at(160, 160));
+        assert!(!m.at(0, 0));
+        assert!(m.at(159, 60) && !m.at(159, 58));
+        let inside = m.data().iter().filter(|b| **b).count() as f64;
+        assert!((inside - std::f64::consts::PI * 1e4).abs() / (std::f64::consts::PI * 1e4) < 0.01);
+    }
+
+    #[test]
+    fn camera_file_problems_name_the_key() {
+        let f = CameraFile {
+            width: 0,
+            height: 10,
+            fx: -1.0,
+            fy: 1.0,
+            cx: 0.0,
+            cy: f64::NAN,
+            depth_scale: 5000.0,
+            distortion: None,
+            fov_radius_px: None,
+            baseline_m: None,
+        };
+        let keys: Vec<_> = f.problems("camera.").into_iter().map(|p| p.key).collect();
+        assert_eq!(keys, vec!["camera.width", "camera.fx", "camera.cy"]);
+    }
+}

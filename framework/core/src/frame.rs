@@ -1,0 +1,314 @@
+//! Frames: what the camera delivers ([`CameraFrame`]) and what the stages after depth
+//! estimation see ([`RgbdFrame`]).
+
+use std::any::Any;
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+use crate::camera::ViewKind;
+use crate::geometry::Iso3;
+use crate::image::{DepthMap, GrayF32, Mask, Rgb8};
+
+/// Well-known mask name: specular highlights found by a preprocessor.
+pub const MASK_SPECULAR: &str = "specular";
+/// Well-known mask name: pixels outside the lens' round field of view.
+pub const MASK_OUT_OF_VIEW: &str = "out-of-view";
+/// Well-known mask name: pixels clipped by the sensor before a preprocessor rescaled them (their
+/// value no longer tells the radiance).
+pub const MASK_SATURATED: &str = "saturated";
+
+/// Which radial fall-off a preprocessor divided out of the images (Goldman 2010, "Vignette and exposure calibration and compensation", IEEE TPAMI 32(12); Kim & Pollefeys 2008).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Falloff {
+    /// The lens vignetting and the LED profile, `V(u) · μ(u)`: what a near-light model keeps
+    /// apart from the cos θ / r² cue of the shape.
+    LensAndLight,
+    /// The whole flat field, `V(u) · μ(u) · cos³α(u)` (a flat target facing the capsule,
+    /// α the ray's angle to the optical axis): what a distant-light model (Tsai–Shah) expects.
+    FlatField,
+}
+
+impl Falloff {
+    /// The factor by which a flat-field-divided pixel must be multiplied to be lens-and-light
+    /// divided, at a ray with `cos α = cos_alpha` (a flat target at distance D sees the light at
+    /// distance D / cos α under incidence α: cos α · cos² α).
+    pub fn flat_to_lens_and_light(cos_alpha: f64) -> f64 {
+        cos_alpha * cos_alpha * cos_alpha
+    }
+}
+
+/// A fall-off divided out of every view's linear image: the corrected linear value is
+/// `linear_scale · L / F(u)` with L the input's linear value (each 8-bit channel decoded with
+/// `gamma`) and F the fall-off of kind `falloff`, 1 at the principal point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DividedFalloff {
+    /// What was divided out.
+    pub falloff: Falloff,
+    /// Global factor applied after the division (keeps the brightest corrected pixel below
+    /// clipping).
+    pub linear_scale: f64,
+    /// The encoding exponent used: pixel = linear^(1/gamma).
+    pub gamma: f64,
+}
+
+/// What preprocessors did to the photometry of a frame's images, so that a depth estimator with
+/// a photometric model sees the image it models.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Photometry {
+    /// The fall-off divided out, if any.
+    pub divided: Option<DividedFalloff>,
+}
+
+/// Named per-pixel masks. A set pixel marks a pixel that later stages must ignore
+/// (a specular highlight, a pixel outside the field of view, ...).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Masks(BTreeMap<String, Mask>);
+
+impl Masks {
+    /// No masks.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds or replaces a mask.
+    pub fn insert(&mut self, name: impl Into<String>, mask: Mask) {
+        self.0.insert(name.into(), mask);
+    }
+
+    /// A mask by name.
+    pub fn get(&self, name: &str) -> Option<&Mask> {
+        self.0.get(name)
+    }
+
+    /// Masks in name order.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &Mask)> {
+        self.0.iter().map(|(k, v)| (k.as_str(), v))
+    }
+
+    /// Whether any mask marks pixel `(x, y)` (it is to be ignored).
+    pub fn ignored(&self, x: usize, y: usize) -> bool {
+        self.0.values().any(|m| m.at(x, y))
+    }
+
+    /// The union of all masks, or `None` when there are none.
+    pub fn union(&self) -> Option<Mask> {
+        let mut it = self.0.values();
+        let mut out = it.next()?.clone();
+        for m in it {
+            for (o, v) in out.data_mut().iter_mut().zip(m.data()) {
+                *o |= *v;
+            }
+        }
+        Some(out)
+    }
+}
+
+/// The images of one exposure.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Views {
+    /// One camera.
+    Mono(Rgb8),
+    /// A rectified stereo pair.
+    Stereo {
+        /// Reference (left) image.
+        left: Rgb8,
+        /// Right image.
+        right: Rgb8,
+    },
+}
+
+impl Views {
+    /// The reference image (the mono image, or the left one).
+    pub fn reference(&self) -> &Rgb8 {
+        match self {
+            Views::Mono(i) => i,
+            Views::Stereo { left, .. } => left,
+        }
+    }
+
+    /// Every image, mutable, so that a mono preprocessor works on stereo unchanged.
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = &mut Rgb8> {
+        let v: Vec<&mut Rgb8> = match self {
+            Views::Mono(i) => vec![i],
+            Views::Stereo { left, right } => vec![left, right],
+        };
+        v.into_iter()
+    }
+
+    /// Mono or stereo.
+    pub fn kind(&self) -> ViewKind {
+        match self {
+            Views::Mono(_) => ViewKind::Mono,
+            Views::Stereo { .. } => ViewKind::Stereo,
+        }
+    }
+}
+
+/// A frame as read from the input, before depth estimation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraFrame {
+    /// 0-based index in the sequence.
+    pub index: usize,
+    /// Timestamp, seconds.
+    pub timestamp_s: f64,
+    /// The camera image(s).
+    pub views: Views,
+    /// Depth from a sensor or the phantom's ground truth, if the input has it.
+    pub depth_m: Option<DepthMap>,
+    /// Ground-truth camera pose, if the input has it.
+    pub gt_t_world_cam: Option<Iso3>,
+    /// Masks of pixels to ignore.
+    pub masks: Masks,
+    /// What the preprocessors did to the images' photometry.
+    pub photometry: Photometry,
+}
+
+impl CameraFrame {
+    /// A mono frame with no depth, pose, masks or photometric corrections.
+    pub fn mono(index: usize, timestamp_s: f64, image: Rgb8) -> Self {
+        Self { index, timestamp_s, views: Views::Mono(image), depth_m: None, gt_t_world_cam: None, masks: Masks::new(), photometry: Photometry::default() }
+    }
+}
+
+/// A memo of data derived from one frame (filtered depth, vertex and normal maps, ...), so that
+/// stages needing the same derivation compute it once. Keys name the derivation and every
+/// parameter it used. Stages still never call each other: they share results through the frame.
+/// A clone starts empty, so a modified copy of a frame never sees stale data.
+#[derive(Default)]
+pub struct Derived(Mutex<Vec<(String, Arc<dyn Any + Send + Sync>)>>);
+
+impl Derived {
+    /// The value under `key`, computed by `f` on first use.
+    pub fn get_or_compute<T: Any + Send + Sync>(&self, key: &str, f: impl FnOnce() -> T) -> Arc<T> {
+        let mut memo = self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(v) = memo.iter().find(|(k, _)| k == key).and_then(|(_, v)| v.clone().downcast::<T>().ok()) {
+            return v;
+        }
+        let v = Arc::new(f());
+        memo.push((key.to_owned(), v.clone()));
+        v
+    }
+
+    /// Number of memoised values.
+    pub fn len(&self) -> usize {
+        self.0.lock().map_or(0, |m| m.len())
+    }
+
+    /// Whether nothing is memoised.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+impl Clone for Derived {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl PartialEq for Derived {
+    /// Derived data never makes two frames differ.
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for Derived {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Derived({} values)", self.len())
+    }
+}
+
+/// Where a frame's depth came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum DepthSource {
+    /// Measured (an RGB-D sensor, or the phantom's exact depth): noise of fractions of a mm.
+    #[default]
+    Measured,
+    /// Estimated from the image (shape from shading): smooth, but biased by millimetres where
+    /// the albedo or the light model is off.
+    Estimated,
+}
+
+/// What tracking, fusion and loop closure see: one colour image with its depth, whatever
+/// produced the depth (a sensor, shape from shading, a stereo matcher).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RgbdFrame {
+    /// Where the depth came from: a tracker weighs measured and estimated depth differently.
+    pub depth_source: DepthSource,
+    /// 0-based index in the sequence.
+    pub index: usize,
+    /// Timestamp, seconds.
+    pub timestamp_s: f64,
+    /// Reference colour image.
+    pub colour: Rgb8,
+    /// Depth along z, metres; 0 = invalid.
+    pub depth_m: DepthMap,
+    /// Per-pixel depth confidence in [0, 1], when the estimator gives one.
+    pub depth_confidence: Option<GrayF32>,
+    /// Per-pixel albedo observed by the depth estimator (linear luminance; 0 = none), when it
+    /// has a light model: what the fuser averages into each surfel's albedo.
+    pub albedo: Option<GrayF32>,
+    /// Ground-truth pose, if known (for oracle stages and evaluation only).
+    pub gt_t_world_cam: Option<Iso3>,
+    /// Masks of pixels to ignore.
+    pub masks: Masks,
+    /// Data derived from this frame, shared between stages.
+    pub derived: Derived,
+}
+
+impl RgbdFrame {
+    /// Whether pixel `(x, y)` has valid depth and no mask marks it.
+    pub fn usable(&self, x: usize, y: usize) -> bool {
+        let d = self.depth_m.at(x, y);
+        d > 0.0 && d.is_finite() && !self.masks.ignored(x, y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn union_and_ignored() {
+        let mut m = Masks::new();
+        assert!(m.union().is_none());
+        let mut a = Mask::new(2, 2);
+        *a.at_mut(0, 0) = true;
+        let mut b = Mask::new(2, 2);
+        *b.at_mut(1, 1) = true;
+        m.insert(MASK_SPECULAR, a);
+        m.insert(MASK_OUT_OF_VIEW, b);
+        let u = m.union().unwrap();
+        assert_eq!(u.data(), &[true, false, false, true]);
+        assert!(m.ignored(1, 1) && !m.ignored(1, 0));
+    }
+
+    #[test]
+    fn derived_values_are_computed_once_and_not_cloned() {
+        let d = Derived::default();
+        let mut calls = 0;
+        let a = d.get_or_compute("x", || {
+            calls += 1;
+            41
+        });
+        let b = d.get_or_compute("x", || 0);
+        assert_eq!((*a, *b, calls), (41, 41, 1));
+        assert_eq!(*d.get_or_compute("y", || 2.5f32), 2.5);
+        assert_eq!(d.len(), 2);
+        assert!(d.clone().is_empty());
+    }
+
+    #[test]
+    fn stereo_iter_mut_visits_both() {
+        let mut v = Views::Stereo { left: Rgb8::new(1, 1), right: Rgb8::new(1, 1) };
+        for img in v.iter_mut() {
+            img.set_pixel(0, 0, [9, 9, 9]);
+        }
+        match v {
+            Views::Stereo { left, right } => assert_eq!(left.pixel(0, 0), right.pixel(0, 0)),
+            Views::Mono(_) => unreachable!(),
+        }
+    }
+}

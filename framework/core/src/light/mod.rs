@@ -1,0 +1,181 @@
+//! The photometric model of a capsule camera and its light, `light.toml` (written by the
+//! phantom, fitted by calibration tools for real capsules, read by shape-from-shading plugins):
+//!
+//! `linear pixel = V(u) · albedo · (gain · cos(incidence) · (ref_distance_m / distance_m)² · spot + ambient)`,
+//! then gamma-encoded: `pixel = linear^(1/gamma)` in [0, 1].
+//! `V = 1 + v1 r² + v2 r⁴ (+ v3 r⁶)`, r = pixel distance to (cx, cy) / half-diagonal;
+//! `spot = cos(angle to the optical axis)^spot_exponent`. Distance and incidence are measured
+//! from the light at `position_m` (camera frame).
+
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::camera::PinholeCamera;
+
+pub mod vignetting;
+
+/// `light.toml`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LightModel {
+    /// Light gain: 1 = a white Lambertian wall head-on at `ref_distance_m` gives linear value 1.
+    pub gain: f64,
+    /// Reference distance of the gain, metres.
+    pub ref_distance_m: f64,
+    /// Ambient term (inter-reflections), linear units.
+    pub ambient: f64,
+    /// Encoding exponent of the pixel values.
+    pub gamma: f64,
+    /// Light position in the camera frame, metres.
+    pub position_m: [f64; 3],
+    /// LED profile exponent: spot = cos(angle to the optical axis)^spot_exponent.
+    pub spot_exponent: f64,
+    /// Vignetting coefficients v1, v2 (, v3) of V = 1 + v1 r² + v2 r⁴ (+ v3 r⁶).
+    pub vignetting: Vec<f64>,
+}
+
+impl Default for LightModel {
+    fn default() -> Self {
+        Self { gain: 1.0, ref_distance_m: 0.025, ambient: 0.02, gamma: 2.2, position_m: [0.0; 3], spot_exponent: 0.0, vignetting: vec![-0.3, -0.25] }
+    }
+}
+
+impl LightModel {
+    /// Every invalid field as `(key, message)`.
+    pub fn problems(&self) -> Vec<(&'static str, String)> {
+        let mut out = Vec::new();
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        if !pos(self.gain) {
+            out.push(("gain", format!("{} must be positive", self.gain)));
+        }
+        if !pos(self.ref_distance_m) {
+            out.push(("ref_distance_m", format!("{} must be a positive distance in metres", self.ref_distance_m)));
+        }
+        if !(self.ambient.is_finite() && self.ambient >= 0.0) {
+            out.push(("ambient", format!("{} must be ≥ 0", self.ambient)));
+        }
+        if !pos(self.gamma) {
+            out.push(("gamma", format!("{} must be positive", self.gamma)));
+        }
+        if !self.position_m.iter().all(|v| v.is_finite()) {
+            out.push(("position_m", "must be three finite numbers".into()));
+        }
+        if !(self.spot_exponent.is_finite() && self.spot_exponent >= 0.0) {
+            out.push(("spot_exponent", format!("{} must be ≥ 0", self.spot_exponent)));
+        }
+        if !(self.vignetting.len() == 2 || self.vignetting.len() == 3) || !self.vignetting.iter().all(|v| v.is_finite()) {
+            out.push(("vignetting", "needs 2 or 3 finite coefficients v1 v2 (v3)".into()));
+        }
+        out
+    }
+
+    /// V(u) at pixel (u, v).
+    pub fn vignetting_at(&self, cam: &PinholeCamera, u: f64, v: f64) -> f64 {
+        let (du, dv) = (u - cam.cx, v - cam.cy);
+        let r2 = (du * du + dv * dv) / (cam.half_diagonal_px() * cam.half_diagonal_px());
+        let mut out = 1.0;
+        let mut rk = 1.0;
+        for c in &self.vignetting {
+            rk *= r2;
+            out += c * rk;
+        }
+        out
+    }
+
+    /// The light position in the camera frame.
+    pub fn position(&self) -> Point3<f64> {
+        Point3::new(self.position_m[0], self.position_m[1], self.position_m[2])
+    }
+
+    /// The light's fall-off at a camera-frame point, `gain · (ref/d)² · spot`, without the
+    /// incidence term.
+    pub fn falloff(&self, p_cam: &Point3<f64>) -> f64 {
+        let to_point = p_cam - self.position();
+        let d = to_point.norm();
+        if d <= 0.0 {
+            return 0.0;
+        }
+        let cos_axis = (to_point.z / d).max(0.0);
+        let spot = if self.spot_exponent == 0.0 { 1.0 } else { cos_axis.powf(self.spot_exponent) };
+        let r = self.ref_distance_m / d;
+        self.gain * r * r * spot
+    }
+
+    /// Cosine of the incidence angle at a camera-frame point with unit normal `n_cam` (0 when
+    /// the light is behind the surface).
+    pub fn cos_incidence(&self, p_cam: &Point3<f64>, n_cam: &Vector3<f64>) -> f64 {
+        let to_light = self.position() - p_cam;
+        let d = to_light.norm();
+        if d <= 0.0 { 0.0 } else { (n_cam.dot(&to_light) / d).max(0.0) }
+    }
+
+    /// The direct-light term `gain · cos(incidence) · (ref/d)² · spot`.
+    pub fn direct(&self, p_cam: &Point3<f64>, n_cam: &Vector3<f64>) -> f64 {
+        self.cos_incidence(p_cam, n_cam) * self.falloff(p_cam)
+    }
+
+    /// Linear pixel value of a Lambertian point of the given albedo at pixel (u, v).
+    pub fn linear(&self, cam: &PinholeCamera, u: f64, v: f64, albedo: f64, p_cam: &Point3<f64>, n_cam: &Vector3<f64>) -> f64 {
+        self.vignetting_at(cam, u, v) * albedo * (self.direct(p_cam, n_cam) + self.ambient)
+    }
+
+    /// Gamma-encodes a linear value to [0, 1].
+    pub fn encode(&self, linear: f64) -> f64 {
+        linear.clamp(0.0, 1.0).powf(1.0 / self.gamma)
+    }
+
+    /// Decodes an encoded value in [0, 1] to linear.
+    pub fn decode(&self, encoded: f64) -> f64 {
+        encoded.clamp(0.0, 1.0).powf(self.gamma)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gain_is_one_head_on_at_the_reference_distance() {
+        let l = LightModel { ambient: 0.0, ..LightModel::default() };
+        let p = Point3::new(0.0, 0.0, 0.025);
+        assert!((l.direct(&p, &-Vector3::z()) - 1.0).abs() < 1e-12);
+        assert!((l.direct(&Point3::new(0.0, 0.0, 0.05), &-Vector3::z()) - 0.25).abs() < 1e-12);
+    }
+
+    #[test]
+    fn shading_of_a_plane_follows_cos_cubed_over_distance_squared() {
+        // Light at the optical centre, plane z = D: r = D / cos α and cos θ = cos α, so the
+        // direct term is gain (ref/D)² cos³α.
+        let l = LightModel { gain: 0.7, spot_exponent: 0.0, ..LightModel::default() };
+        let d = 0.03;
+        for k in 0..20 {
+            let alpha = k as f64 * 0.06;
+            let p = Point3::new(d * alpha.tan(), 0.0, d);
+            let expected = 0.7 * (0.025 / d).powi(2) * alpha.cos().powi(3);
+            assert!((l.direct(&p, &-Vector3::z()) - expected).abs() < 1e-12, "α {alpha}");
+        }
+        // A spot exponent k multiplies by cos^k α.
+        let spot = LightModel { spot_exponent: 2.0, ..l.clone() };
+        let p = Point3::new(d * 0.5f64.tan(), 0.0, d);
+        assert!((spot.direct(&p, &-Vector3::z()) / l.direct(&p, &-Vector3::z()) - 0.5f64.cos().powi(2)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn vignetting_is_one_at_the_centre_and_falls_off() {
+        let l = LightModel::default();
+        let cam = PinholeCamera::new(320, 320, 160.0, 160.0, 159.5, 159.5);
+        assert_eq!(l.vignetting_at(&cam, 159.5, 159.5), 1.0);
+        let corner = l.vignetting_at(&cam, 319.5, 319.5);
+        assert!((corner - (1.0 - 0.3 - 0.25)).abs() < 0.01, "{corner}");
+    }
+
+    #[test]
+    fn encode_inverts_decode() {
+        let l = LightModel::default();
+        for v in [0.0, 0.1, 0.5, 1.0] {
+            assert!((l.decode(l.encode(v)) - v).abs() < 1e-12);
+        }
+        assert!(l.problems().is_empty());
+        assert_eq!(LightModel { vignetting: vec![1.0], gamma: 0.0, ..l }.problems().len(), 2);
+    }
+}

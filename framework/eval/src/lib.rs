@@ -1,0 +1,198 @@
+//! Evaluation against ground truth, with evo's definitions (Grupp, "evo: Python package for the
+//! evaluation of odometry and SLAM", 2017): trajectory alignment (Umeyama), absolute trajectory
+//! error (ATE, SE(3) or Sim(3)), relative pose error ([`rpe`]), surface error ([`surface`]) and
+//! single-frame depth error ([`depth`]).
+
+pub mod align;
+pub use capsule_slam_framework::depth_error as depth;
+pub mod report;
+pub mod rpe;
+pub mod surface;
+
+use nalgebra::{Point3, UnitQuaternion};
+use serde::Serialize;
+
+use capsule_slam_framework::geometry::{Iso3, StampedPose};
+
+pub use align::{Similarity, umeyama};
+
+/// Pairs of (estimated, ground-truth) poses matched by nearest timestamp within `tolerance_s`
+/// (each estimated pose matched to its nearest ground-truth pose).
+pub fn associate<'a>(est: &'a [StampedPose], gt: &'a [StampedPose], tolerance_s: f64) -> Vec<(&'a StampedPose, &'a StampedPose)> {
+    est.iter()
+        .filter_map(|e| capsule_slam_framework::geometry::nearest_in_time(gt, e.timestamp_s, tolerance_s, |p| p.timestamp_s).map(|i| (e, &gt[i])))
+        .collect()
+}
+
+/// Summary statistics of a list of errors, as evo reports them (`std` is the population
+/// standard deviation).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Stats {
+    /// Root mean square.
+    pub rmse: f64,
+    /// Mean.
+    pub mean: f64,
+    /// Median.
+    pub median: f64,
+    /// Standard deviation.
+    pub std: f64,
+    /// Smallest.
+    pub min: f64,
+    /// Largest.
+    pub max: f64,
+    /// Number of values.
+    pub count: usize,
+}
+
+impl Stats {
+    /// Statistics of `v`; `None` when empty.
+    pub fn of(v: &[f64]) -> Option<Self> {
+        if v.is_empty() {
+            return None;
+        }
+        let n = v.len() as f64;
+        let mean = v.iter().sum::<f64>() / n;
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        let m = s.len();
+        let median = if m % 2 == 1 { s[m / 2] } else { 0.5 * (s[m / 2 - 1] + s[m / 2]) };
+        Some(Self {
+            rmse: (v.iter().map(|x| x * x).sum::<f64>() / n).sqrt(),
+            mean,
+            median,
+            std: (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / n).sqrt(),
+            min: s[0],
+            max: s[m - 1],
+            count: m,
+        })
+    }
+}
+
+/// Absolute trajectory error (translation part) after alignment.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Ate {
+    /// Position error statistics, metres.
+    pub stats: Stats,
+    /// The alignment estimate → ground truth.
+    #[serde(skip)]
+    pub alignment: Similarity,
+}
+
+impl Ate {
+    /// RMSE, metres.
+    pub fn rmse_m(&self) -> f64 {
+        self.stats.rmse
+    }
+}
+
+/// Umeyama alignment of pose positions `src` onto `dst`.
+pub fn umeyama_poses(src: &[Iso3], dst: &[Iso3], with_scale: bool) -> Option<Similarity> {
+    let s: Vec<Point3<f64>> = src.iter().map(|p| Point3::from(p.translation.vector)).collect();
+    let d: Vec<Point3<f64>> = dst.iter().map(|p| Point3::from(p.translation.vector)).collect();
+    umeyama(&s, &d, with_scale)
+}
+
+/// The alignment of `est` onto `gt` (positions matched by timestamp), with scale (Sim(3)) or
+/// without (SE(3)).
+pub fn align_trajectory(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64, with_scale: bool) -> Option<Similarity> {
+    let pairs = associate(est, gt, tolerance_s);
+    let (e, g): (Vec<Iso3>, Vec<Iso3>) = pairs.iter().map(|(e, g)| (e.t_world_cam, g.t_world_cam)).unzip();
+    umeyama_poses(&e, &g, with_scale)
+}
+
+/// ATE after aligning the estimated positions to the ground truth with Umeyama's method, with
+/// scale (Sim(3), for monocular runs) or without (SE(3)). `None` with fewer than three matched
+/// pairs.
+pub fn ate(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64, with_scale: bool) -> Option<Ate> {
+    let pairs = associate(est, gt, tolerance_s);
+    if pairs.len() < 3 {
+        return None;
+    }
+    let (e, g): (Vec<Iso3>, Vec<Iso3>) = pairs.iter().map(|(e, g)| (e.t_world_cam, g.t_world_cam)).unzip();
+    let sim = umeyama_poses(&e, &g, with_scale)?;
+    let err: Vec<f64> = e.iter().zip(&g).map(|(a, b)| (sim.apply(&Point3::from(a.translation.vector)) - Point3::from(b.translation.vector)).norm()).collect();
+    Some(Ate { stats: Stats::of(&err)?, alignment: sim })
+}
+
+/// Length of the path through the poses' positions, metres.
+pub fn path_length_m(poses: &[StampedPose]) -> f64 {
+    poses.windows(2).map(|w| (w[1].t_world_cam.translation.vector - w[0].t_world_cam.translation.vector).norm()).sum()
+}
+
+impl Similarity {
+    /// Applies the similarity to a pose: position `s R t + t₀`, rotation `R R_pose` (evo's
+    /// `scale` then `transform`).
+    pub fn apply_pose(&self, p: &Iso3) -> Iso3 {
+        let r = UnitQuaternion::from_matrix(&self.rotation);
+        Iso3::from_parts((self.scale * (self.rotation * p.translation.vector) + self.translation).into(), r * p.rotation)
+    }
+
+    /// The rigid part (rotation and translation) as an isometry; exact when the scale is 1.
+    pub fn rigid(&self) -> Iso3 {
+        Iso3::from_parts(self.translation.into(), UnitQuaternion::from_matrix(&self.rotation))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use capsule_slam_framework::geometry::exp_se3;
+    use nalgebra::{Rotation3, Vector3, Vector6};
+    use proptest::prelude::*;
+
+    fn traj(n: usize) -> Vec<StampedPose> {
+        (0..n)
+            .map(|i| {
+                let s = i as f64 * 0.1;
+                StampedPose { timestamp_s: s, t_world_cam: exp_se3(&Vector6::new(0.05 * s.sin(), 0.03 * s, 0.02 * (2.0 * s).cos(), 0.1 * s, 0.2, -0.1 * s)) }
+            })
+            .collect()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        #[test]
+        fn ate_of_a_similarity_transformed_copy_is_zero_with_sim3(
+            angles in prop::array::uniform3(-3.0f64..3.0), shift in prop::array::uniform3(-1.0f64..1.0), scale in 0.2f64..5.0
+        ) {
+            let gt = traj(50);
+            let r = Rotation3::from_euler_angles(angles[0], angles[1], angles[2]);
+            let t = Vector3::new(shift[0], shift[1], shift[2]);
+            let est: Vec<_> = gt.iter().map(|p| StampedPose {
+                timestamp_s: p.timestamp_s,
+                t_world_cam: Iso3::from_parts((scale * (r * p.t_world_cam.translation.vector) + t).into(), UnitQuaternion::from_rotation_matrix(&r) * p.t_world_cam.rotation),
+            }).collect();
+            let a = ate(&est, &gt, 0.01, true).unwrap();
+            prop_assert!(a.rmse_m() < 1e-9, "{:?}", a.stats);
+            prop_assert!((a.alignment.scale - 1.0 / scale).abs() < 1e-9);
+            if (scale - 1.0).abs() > 0.05 {
+                prop_assert!(ate(&est, &gt, 0.01, false).unwrap().rmse_m() > 1e-4);
+            }
+        }
+    }
+
+    #[test]
+    fn known_noise_gives_the_expected_rmse() {
+        // Alternate ±1 mm along x: alignment cannot remove it; the RMSE is 1 mm.
+        let gt = traj(40);
+        let est: Vec<_> = gt
+            .iter()
+            .enumerate()
+            .map(|(i, p)| StampedPose {
+                timestamp_s: p.timestamp_s,
+                t_world_cam: Iso3::translation(if i % 2 == 0 { 0.001 } else { -0.001 }, 0.0, 0.0) * p.t_world_cam,
+            })
+            .collect();
+        let a = ate(&est, &gt, 0.01, false).unwrap();
+        assert!((a.rmse_m() - 0.001).abs() < 5e-5, "{a:?}");
+    }
+
+    #[test]
+    fn stats_match_hand_computation() {
+        let s = Stats::of(&[3.0, 1.0, 2.0, 4.0]).unwrap();
+        assert_eq!((s.mean, s.median, s.min, s.max, s.count), (2.5, 2.5, 1.0, 4.0, 4));
+        assert!((s.rmse - (30.0f64 / 4.0).sqrt()).abs() < 1e-12);
+        assert!((s.std - 1.25f64.sqrt()).abs() < 1e-12);
+        assert!(Stats::of(&[]).is_none());
+    }
+}

@@ -1,0 +1,111 @@
+//! Everything `capsule-slam eval` and `capsule-slam run` report against ground truth, as a
+//! flat map of named figures (the keys of `summary.json`).
+
+use std::collections::BTreeMap;
+
+use super::rpe::{Delta, rpe};
+use super::surface::{SurfaceOptions, surface_error};
+use super::{align_trajectory, ate, path_length_m};
+use capsule_slam_framework::geometry::{Iso3, StampedPose};
+use capsule_slam_framework::map::SurfelSet;
+
+/// What to evaluate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EvalOptions {
+    /// Timestamp association tolerance, seconds.
+    pub tolerance_s: f64,
+    /// Align with scale (Sim(3)) for the headline figures; SE(3) otherwise.
+    pub sim3: bool,
+    /// RPE pair spacing.
+    pub rpe_delta: Delta,
+    /// Surface error options.
+    pub surface: SurfaceOptions,
+}
+
+impl Default for EvalOptions {
+    fn default() -> Self {
+        Self { tolerance_s: 0.02, sim3: false, rpe_delta: Delta::Frames(1), surface: SurfaceOptions::default() }
+    }
+}
+
+/// Trajectory (and optionally surface) figures. Keys: `path_length_m`, `ate_rmse_m` (SE(3)),
+/// `ate_rmse_sim3_m`, `sim3_scale`, `ate_mean_m`, `ate_median_m`, `ate_max_m` (of the chosen
+/// alignment), `ate_percent_of_path`, `rpe_trans_rmse_m`, `rpe_rot_rmse_deg`,
+/// `rpe_trans_per_m`, `rpe_rot_deg_per_m`, and with a map `surface_rmse_m`,
+/// `surface_accuracy_m`, `surface_completeness_1mm`, `surface_completeness_2mm` (over the truth
+/// observed at least once) and `surface_completeness_1mm_seen10`, `..._2mm_seen10` (over the
+/// truth observed in at least 10 frames).
+pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet, &SurfelSet)>, opts: &EvalOptions) -> BTreeMap<String, f64> {
+    let mut m = BTreeMap::new();
+    let path = path_length_m(gt);
+    m.insert("path_length_m".to_owned(), path);
+    let se3 = ate(est, gt, opts.tolerance_s, false);
+    let sim3 = ate(est, gt, opts.tolerance_s, true);
+    if let Some(a) = &se3 {
+        m.insert("ate_rmse_m".into(), a.rmse_m());
+    }
+    if let Some(a) = &sim3 {
+        m.insert("ate_rmse_sim3_m".into(), a.rmse_m());
+        m.insert("sim3_scale".into(), a.alignment.scale);
+    }
+    if let Some(a) = if opts.sim3 { &sim3 } else { &se3 } {
+        m.insert("ate_mean_m".into(), a.stats.mean);
+        m.insert("ate_median_m".into(), a.stats.median);
+        m.insert("ate_max_m".into(), a.stats.max);
+        if path > 0.0 {
+            m.insert("ate_percent_of_path".into(), 100.0 * a.rmse_m() / path);
+        }
+    }
+    if let Some(r) = rpe(est, gt, opts.tolerance_s, opts.rpe_delta, Some(opts.sim3)) {
+        m.insert("rpe_trans_rmse_m".into(), r.trans_m.rmse);
+        m.insert("rpe_rot_rmse_deg".into(), r.rot_deg.rmse);
+        m.insert("rpe_trans_per_m".into(), r.trans_per_m);
+        m.insert("rpe_rot_deg_per_m".into(), r.rot_deg_per_m);
+    }
+    if let (Some((map, truth)), Some(align)) = (map, align_trajectory(est, gt, opts.tolerance_s, opts.sim3)) {
+        let mut moved = map.clone();
+        for s in &mut moved.surfels {
+            s.position_m = align.apply(&s.position_m.cast()).cast();
+            s.normal = (align.rotation * s.normal.cast::<f64>()).cast();
+        }
+        if let Some(e) = surface_error(&moved, truth, &Iso3::identity(), &opts.surface) {
+            m.insert("surface_rmse_m".into(), e.rmse_m);
+            m.insert("surface_accuracy_m".into(), e.accuracy_m);
+            m.insert("surface_completeness_1mm".into(), e.completeness_1mm);
+            m.insert("surface_completeness_2mm".into(), e.completeness_2mm);
+            m.insert("surface_completeness_1mm_seen10".into(), e.completeness_1mm_min_views);
+            m.insert("surface_completeness_2mm_seen10".into(), e.completeness_2mm_min_views);
+        }
+    }
+    m
+}
+
+/// A readable table of the figures (millimetres and degrees).
+pub fn table(m: &BTreeMap<String, f64>) -> String {
+    let rows: [(&str, &str, f64, &str); 17] = [
+        ("path_length_m", "path length", 1e3, "mm"),
+        ("ate_rmse_m", "ATE RMSE, SE(3)", 1e3, "mm"),
+        ("ate_rmse_sim3_m", "ATE RMSE, Sim(3)", 1e3, "mm"),
+        ("sim3_scale", "Sim(3) scale", 1.0, ""),
+        ("ate_percent_of_path", "ATE RMSE / path", 1.0, "%"),
+        ("ate_median_m", "ATE median", 1e3, "mm"),
+        ("ate_max_m", "ATE max", 1e3, "mm"),
+        ("rpe_trans_rmse_m", "RPE translation RMSE", 1e3, "mm"),
+        ("rpe_rot_rmse_deg", "RPE rotation RMSE", 1.0, "deg"),
+        ("rpe_trans_per_m", "RPE translation per path", 100.0, "%"),
+        ("rpe_rot_deg_per_m", "RPE rotation per path", 1.0, "deg/m"),
+        ("surface_rmse_m", "surface RMSE", 1e3, "mm"),
+        ("surface_accuracy_m", "surface accuracy (median)", 1e3, "mm"),
+        ("surface_completeness_1mm", "completeness ≤ 1 mm", 100.0, "%"),
+        ("surface_completeness_2mm", "completeness ≤ 2 mm", 100.0, "%"),
+        ("surface_completeness_1mm_seen10", "  of truth seen ≥ 10×, ≤ 1 mm", 100.0, "%"),
+        ("surface_completeness_2mm_seen10", "  of truth seen ≥ 10×, ≤ 2 mm", 100.0, "%"),
+    ];
+    let mut out = String::new();
+    for (key, label, scale, unit) in rows {
+        if let Some(v) = m.get(key) {
+            out.push_str(&format!("{label:<28} {:>10.4} {unit}\n", v * scale));
+        }
+    }
+    out
+}

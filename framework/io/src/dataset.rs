@@ -1,0 +1,177 @@
+//! An input folder: TUM RGB-D layout (`rgb.txt`, optional `depth.txt` and `groundtruth.txt`)
+//! or a plain folder of images sorted by name, with `camera.toml` beside them.
+//! Frames are loaded one at a time ([`Dataset::load`]), so a run streams.
+
+use std::path::{Path, PathBuf};
+
+use capsule_slam_framework::camera::{CameraFile, Rig};
+use capsule_slam_framework::config::InputConfig;
+use capsule_slam_framework::error::LoadError;
+use capsule_slam_framework::files::read_camera_file;
+use capsule_slam_framework::frame::{CameraFrame, MASK_OUT_OF_VIEW, Masks, Photometry, Views};
+use capsule_slam_framework::geometry::nearest_in_time;
+use capsule_slam_framework::geometry::{Iso3, StampedPose};
+use capsule_slam_framework::image::Mask;
+
+use crate::{images, tum};
+
+#[derive(Debug, Clone)]
+struct Entry {
+    timestamp_s: f64,
+    rgb: PathBuf,
+    depth: Option<PathBuf>,
+    gt: Option<Iso3>,
+}
+
+/// An opened input folder.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    dir: PathBuf,
+    camera: CameraFile,
+    entries: Vec<Entry>,
+    ground_truth: Vec<StampedPose>,
+    has_depth: bool,
+    dropped_without_depth: usize,
+    out_of_view: Option<Mask>,
+}
+
+const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
+
+impl Dataset {
+    /// Opens a folder. The camera comes from `camera_override` or `<dir>/camera.toml`.
+    /// RGB frames without a depth image within the tolerance are dropped (as TUM's
+    /// associate.py does) and counted in [`Dataset::dropped_without_depth`].
+    pub fn open(dir: &Path, input: &InputConfig, camera_override: Option<&CameraFile>) -> Result<Self, LoadError> {
+        if !dir.is_dir() {
+            return Err(LoadError::io(dir, std::io::Error::new(std::io::ErrorKind::NotFound, "input folder not found")));
+        }
+        let camera = match camera_override {
+            Some(c) => c.clone(),
+            None => {
+                let p = dir.join("camera.toml");
+                if !p.exists() {
+                    return Err(LoadError::parse(
+                        &p,
+                        0,
+                        "missing: every input folder needs camera.toml (width, height, fx, fy, cx, cy), or give [camera] in the config",
+                    ));
+                }
+                read_camera_file(&p)?
+            }
+        };
+        let tol = input.association_tolerance_s;
+        let rgb_txt = dir.join("rgb.txt");
+        let gt_txt = dir.join("groundtruth.txt");
+        let ground_truth = if gt_txt.exists() { tum::read_trajectory(&gt_txt)? } else { Vec::new() };
+        let gt_at = |t: f64| nearest_in_time(&ground_truth, t, tol, |p| p.timestamp_s).map(|i| ground_truth[i].t_world_cam);
+
+        let (entries, has_depth, dropped) = if rgb_txt.exists() {
+            let rgb = tum::read_list(&rgb_txt)?;
+            let depth_txt = dir.join("depth.txt");
+            let depth = if depth_txt.exists() { Some(tum::read_list(&depth_txt)?) } else { None };
+            let mut entries = Vec::with_capacity(rgb.len());
+            let mut dropped = 0;
+            for r in rgb {
+                let d = match &depth {
+                    None => None,
+                    Some(list) => match nearest_in_time(list, r.timestamp_s, tol, |e| e.timestamp_s) {
+                        Some(i) => Some(dir.join(&list[i].file)),
+                        None => {
+                            dropped += 1;
+                            continue;
+                        }
+                    },
+                };
+                entries.push(Entry { timestamp_s: r.timestamp_s, rgb: dir.join(&r.file), depth: d, gt: gt_at(r.timestamp_s) });
+            }
+            (entries, depth.is_some(), dropped)
+        } else {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+                .map_err(|e| LoadError::io(dir, e))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str())))
+                .collect();
+            files.sort();
+            let entries = files
+                .into_iter()
+                .enumerate()
+                .map(|(i, rgb)| {
+                    let t = i as f64 / input.frame_rate_hz;
+                    Entry { timestamp_s: t, rgb, depth: None, gt: gt_at(t) }
+                })
+                .collect();
+            (entries, false, 0)
+        };
+        if entries.is_empty() {
+            return Err(LoadError::parse(
+                if rgb_txt.exists() { rgb_txt } else { dir.to_owned() },
+                0,
+                "no frames: expected rgb.txt (TUM layout) or image files (png, jpg, bmp)",
+            ));
+        }
+        let cam = camera.camera();
+        let out_of_view = cam.fov_radius_px.map(|_| {
+            let mut m = cam.fov_mask();
+            m.data_mut().iter_mut().for_each(|v| *v = !*v);
+            m
+        });
+        Ok(Self { dir: dir.to_owned(), camera, entries, ground_truth, has_depth, dropped_without_depth: dropped, out_of_view })
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Whether there are no frames (never true for an opened dataset).
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// The input folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The camera file in force.
+    pub fn camera_file(&self) -> &CameraFile {
+        &self.camera
+    }
+
+    /// The rig.
+    pub fn rig(&self) -> Rig {
+        self.camera.rig()
+    }
+
+    /// Whether frames carry depth.
+    pub fn has_depth(&self) -> bool {
+        self.has_depth
+    }
+
+    /// The whole ground-truth trajectory (empty without `groundtruth.txt`).
+    pub fn ground_truth(&self) -> &[StampedPose] {
+        &self.ground_truth
+    }
+
+    /// RGB frames dropped for lack of a depth image within the tolerance.
+    pub fn dropped_without_depth(&self) -> usize {
+        self.dropped_without_depth
+    }
+
+    /// Loads frame `index`.
+    pub fn load(&self, index: usize) -> Result<CameraFrame, LoadError> {
+        let e =
+            self.entries.get(index).ok_or_else(|| LoadError::parse(&self.dir, 0, format!("frame {index} does not exist ({} frames)", self.entries.len())))?;
+        let size = Some((self.camera.width as usize, self.camera.height as usize));
+        let rgb = images::read_rgb(&e.rgb, size)?;
+        let depth_m = match &e.depth {
+            Some(p) => Some(images::read_depth(p, self.camera.depth_scale, size)?),
+            None => None,
+        };
+        let mut masks = Masks::new();
+        if let Some(m) = &self.out_of_view {
+            masks.insert(MASK_OUT_OF_VIEW, m.clone());
+        }
+        Ok(CameraFrame { index, timestamp_s: e.timestamp_s, views: Views::Mono(rgb), depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() })
+    }
+}

@@ -1,0 +1,10 @@
+//! Dataset input: the TUM RGB-D layout or a plain image folder with its `camera.toml`
+//! ([`dataset`]), images and 16-bit depth ([`images`]), PLY surfel maps ([`ply`]) and TUM
+//! trajectories ([`tum`]). Every error names its file, and its line where there is one.
+
+pub mod dataset;
+pub mod images;
+pub mod ply;
+pub mod tum;
+
+pub use dataset::Dataset;

@@ -1,0 +1,230 @@
+//! The synthetic deformable stomach phantom: the ground truth of every stage.
+//!
+//! A capsule camera inside a closed, bent, bulging cavity ([`shape`]) with procedural tissue
+//! texture ([`texture`]), lit by a point light at (or beside) the optical centre with the
+//! near-light model of `light.toml` ([`capsule_slam_framework::light`]): Lambertian `albedo · cos θ / r²`, LED
+//! spot profile, Blinn–Phong highlights of wet tissue, lens vignetting, gamma, Gaussian read
+//! and shot noise, optional motion blur and a peristaltic wall motion. Seven camera paths
+//! mirror the paper's Table 3 ([`trajectory`]). Rendering is deterministic for a seed.
+
+pub mod render;
+pub mod shape;
+pub mod texture;
+pub mod trajectory;
+pub mod writer;
+
+use serde::{Deserialize, Serialize};
+
+use capsule_slam_framework::camera::{CameraFile, PinholeCamera};
+use capsule_slam_framework::geometry::Iso3;
+use capsule_slam_framework::light::LightModel;
+use shape::StomachShape;
+
+/// Image size presets: the paper's three cameras and a 320×320 capsule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum SizePreset {
+    /// NanEye, 250×250.
+    #[serde(rename = "naneye")]
+    NanEye,
+    /// 320×320 capsule camera (default).
+    #[default]
+    #[serde(rename = "320")]
+    Capsule320,
+    /// Voyager, 720×480.
+    #[serde(rename = "voyager")]
+    Voyager,
+    /// Potensic, 1280×720.
+    #[serde(rename = "potensic")]
+    Potensic,
+}
+
+impl SizePreset {
+    /// Parses `naneye`, `320`, `voyager` or `potensic`.
+    pub fn parse(s: &str) -> Option<Self> {
+        Some(match s {
+            "naneye" | "250" => Self::NanEye,
+            "320" | "capsule" => Self::Capsule320,
+            "voyager" | "720x480" => Self::Voyager,
+            "potensic" | "1280x720" => Self::Potensic,
+            _ => return None,
+        })
+    }
+
+    /// (width, height) in pixels.
+    pub fn size(&self) -> (u32, u32) {
+        match self {
+            Self::NanEye => (250, 250),
+            Self::Capsule320 => (320, 320),
+            Self::Voyager => (720, 480),
+            Self::Potensic => (1280, 720),
+        }
+    }
+}
+
+/// Everything that defines a phantom sequence (written as `phantom.toml` beside it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhantomSpec {
+    /// Trajectory preset, 1–7 (the paper's Table 3).
+    pub preset: u8,
+    /// Number of frames.
+    pub frames: usize,
+    /// Image size.
+    pub size: SizePreset,
+    /// Seed of texture and noise.
+    pub seed: u64,
+    /// Amplitude of the peristaltic wall motion, mm (0 = rigid).
+    pub deform_mm: f64,
+    /// Scale of the specular highlights (0 = none, 1 = wet tissue).
+    pub specular: f64,
+    /// Scale of the sensor noise (0 = none, 1 = a good capsule sensor).
+    pub noise: f64,
+    /// Procedural tissue texture; false = uniform albedo (for shape from shading).
+    pub texture: bool,
+    /// Light offset from the optical centre along camera x, mm.
+    pub light_offset_mm: f64,
+    /// Sub-frame samples of motion blur (1 = none).
+    pub motion_blur: u32,
+    /// Radial lens distortion k1 (0 = pinhole).
+    pub distortion_k1: f64,
+    /// Frame rate, Hz.
+    pub frame_rate_hz: f64,
+}
+
+impl PhantomSpec {
+    /// The defaults of a trajectory preset: heavy noise on 6, heavy reflections on 7.
+    pub fn preset(preset: u8) -> Self {
+        Self {
+            preset,
+            frames: 300,
+            size: SizePreset::default(),
+            seed: 1,
+            deform_mm: 0.0,
+            specular: if preset == 7 { 2.5 } else { 1.0 },
+            noise: if preset == 6 { 5.0 } else { 1.0 },
+            texture: true,
+            light_offset_mm: 0.0,
+            motion_blur: 1,
+            distortion_k1: 0.0,
+            frame_rate_hz: 30.0,
+        }
+    }
+
+    /// Every invalid field as `(field, message)`.
+    pub fn problems(&self) -> Vec<(&'static str, String)> {
+        let mut out = Vec::new();
+        if !(1..=7).contains(&self.preset) {
+            out.push(("preset", format!("{} is not a preset; use 1–7", self.preset)));
+        }
+        if self.frames == 0 {
+            out.push(("frames", "must be at least 1".into()));
+        }
+        if !(self.deform_mm.is_finite() && (0.0..=8.0).contains(&self.deform_mm)) {
+            out.push(("deform_mm", format!("{} must be in [0, 8] mm", self.deform_mm)));
+        }
+        for (k, v) in [("specular", self.specular), ("noise", self.noise)] {
+            if !(v.is_finite() && (0.0..=20.0).contains(&v)) {
+                out.push((k, format!("{v} must be in [0, 20]")));
+            }
+        }
+        if !(self.light_offset_mm.is_finite() && self.light_offset_mm.abs() <= 10.0) {
+            out.push(("light_offset_mm", format!("{} must be within ±10 mm", self.light_offset_mm)));
+        }
+        if !(1..=32).contains(&self.motion_blur) {
+            out.push(("motion_blur", format!("{} samples: use 1 (off) to 32", self.motion_blur)));
+        }
+        if !(self.distortion_k1.is_finite() && self.distortion_k1.abs() <= 0.5) {
+            out.push(("distortion_k1", format!("{} must be within ±0.5", self.distortion_k1)));
+        }
+        if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
+            out.push(("frame_rate_hz", format!("{} must be positive", self.frame_rate_hz)));
+        }
+        out
+    }
+}
+
+/// Specular reflectance of wet mucosa (Blinn–Phong k_s), white.
+pub const SPECULAR_ALBEDO: f64 = 1.5;
+/// Blinn–Phong exponent of wet mucosa (a sharp, mirror-like film of fluid).
+pub const SHININESS: f64 = 250.0;
+
+/// A phantom ready to render.
+#[derive(Debug, Clone)]
+pub struct Phantom {
+    /// The spec it was built from.
+    pub spec: PhantomSpec,
+    /// The cavity.
+    pub shape: StomachShape,
+    /// The camera.
+    pub camera: PinholeCamera,
+    /// The light.
+    pub light: LightModel,
+    poses: Vec<Iso3>,
+}
+
+impl Phantom {
+    /// Builds the phantom; `Err` lists every invalid field of the spec.
+    pub fn new(spec: PhantomSpec) -> Result<Self, String> {
+        let problems = spec.problems();
+        if !problems.is_empty() {
+            return Err(problems.into_iter().map(|(k, m)| format!("{k}: {m}")).collect::<Vec<_>>().join("; "));
+        }
+        let shape = StomachShape { wave_m: spec.deform_mm * 1e-3, ..StomachShape::default() };
+        let camera = Self::camera_file_for(&spec).camera();
+        let light = LightModel {
+            gain: 0.6,
+            ref_distance_m: 0.025,
+            ambient: 0.02,
+            gamma: 2.2,
+            position_m: [spec.light_offset_mm * 1e-3, 0.0, 0.0],
+            spot_exponent: 1.0,
+            vignetting: vec![-0.3, -0.25],
+        };
+        let poses = (0..spec.frames).map(|i| trajectory::pose(&shape, &trajectory::waypoint(spec.preset, tau(i, spec.frames)))).collect();
+        Ok(Self { spec, shape, camera, light, poses })
+    }
+
+    /// The `camera.toml` of a spec's size: focal length half the shorter side; square sensors
+    /// get a round field of view of radius 0.47 × the side (capsule lenses are round).
+    pub fn camera_file_for(spec: &PhantomSpec) -> CameraFile {
+        let (w, h) = spec.size.size();
+        let f = 0.5 * f64::from(w.min(h));
+        CameraFile {
+            width: w,
+            height: h,
+            fx: f,
+            fy: f,
+            cx: (f64::from(w) - 1.0) / 2.0,
+            cy: (f64::from(h) - 1.0) / 2.0,
+            depth_scale: 5000.0,
+            distortion: (spec.distortion_k1 != 0.0).then_some([spec.distortion_k1, 0.0, 0.0, 0.0, 0.0]),
+            fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
+            baseline_m: None,
+        }
+    }
+
+    /// Ground-truth pose of frame `i`.
+    pub fn pose(&self, i: usize) -> Iso3 {
+        self.poses[i.min(self.poses.len() - 1)]
+    }
+
+    /// Every ground-truth pose.
+    pub fn poses(&self) -> &[Iso3] {
+        &self.poses
+    }
+
+    /// Timestamp of frame `i`, seconds.
+    pub fn time_s(&self, i: usize) -> f64 {
+        i as f64 / self.spec.frame_rate_hz
+    }
+
+    /// Path length of the trajectory, metres.
+    pub fn path_length_m(&self) -> f64 {
+        trajectory::path_length_m(&self.poses)
+    }
+}
+
+/// Normalised time of frame `i` of `n`.
+pub fn tau(i: usize, n: usize) -> f64 {
+    if n <= 1 { 0.0 } else { i as f64 / (n - 1) as f64 }
+}

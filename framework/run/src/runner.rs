@@ -1,0 +1,119 @@
+//! Runs a pipeline over a dataset, streaming the output. A failure at frame N stops the run
+//! with that error after writing what exists: the trajectory and `frames.csv` up to frame
+//! N − 1, the map and a `summary.json` whose status names the failure.
+
+use capsule_slam_eval::report::{EvalOptions, evaluate};
+use capsule_slam_framework::error::PipelineError;
+use capsule_slam_framework::geometry::StampedPose;
+use capsule_slam_io::{Dataset, ply};
+
+use crate::writer::{RunWriter, Summary};
+use capsule_slam_framework::map::SurfelSet;
+use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
+
+/// Options of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct RunOptions {
+    /// Process at most this many frames.
+    pub max_frames: Option<usize>,
+    /// Write `map.ply` at the end.
+    pub write_map: bool,
+    /// Headline figures aligned with scale (monocular runs).
+    pub eval_sim3: bool,
+    /// With ground truth: score every loop closure the moment it is applied, the map's surface
+    /// error and the trajectory's ATE just before and just after it (`closures.csv`). Costs a
+    /// map snapshot per frame.
+    pub closure_report: bool,
+}
+
+/// The ground-truth surface of an input folder, when it has one.
+pub const GT_SURFACE_FILE: &str = "gt_surface.ply";
+
+/// Processes the dataset's frames in order; calls `on_frame` after each.
+pub fn run(
+    dataset: &Dataset,
+    pipeline: &mut Pipeline,
+    writer: &mut RunWriter,
+    opts: &RunOptions,
+    mut on_frame: impl FnMut(&FrameRecord),
+) -> Result<Summary, PipelineError> {
+    let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
+    let mut records = Vec::with_capacity(n);
+    let mut failure: Option<PipelineError> = None;
+    let truth = load_truth(dataset)?;
+    let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
+    let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
+    for i in 0..n {
+        let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
+        let rec = match dataset.load(i) {
+            Ok(frame) => pipeline.process(frame),
+            Err(e) => Err(PipelineError::Load(e)),
+        };
+        match rec {
+            Ok(rec) => {
+                if let (true, Some((map, traj)), Some(truth)) = (rec.loop_closed, &before, &truth) {
+                    let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?;
+                    let score = |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((map, truth)), &eval_opts);
+                    let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
+                    writer.write_closure(i, &b, &a)?;
+                }
+                writer.write_frame(&rec)?;
+                on_frame(&rec);
+                records.push(rec);
+            }
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        }
+    }
+
+    if pipeline.loop_closures() > 0 {
+        writer.rewrite_trajectory(pipeline.trajectory())?;
+    }
+    let map = match pipeline.snapshot() {
+        Ok(set) => Some(set),
+        Err(e) => {
+            if failure.is_none() {
+                failure = Some(stage_error(pipeline, n, e));
+            }
+            None
+        }
+    };
+    if let (true, Some(set)) = (opts.write_map, &map) {
+        writer.write_map(set)?;
+    }
+    let mut summary = Summary::from_records(&records);
+    summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
+    let gt = dataset.ground_truth();
+    if !gt.is_empty() && !records.is_empty() {
+        let surfaces = match (&map, &truth) {
+            (Some(m), Some(t)) if !m.is_empty() => Some((m, t)),
+            _ => None,
+        };
+        summary.metrics = evaluate(pipeline.trajectory(), gt, surfaces, &eval_opts);
+        summary.ate_rmse_m = summary.metrics.remove("ate_rmse_m");
+    }
+    let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
+    if !abs_rel.is_empty() {
+        summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
+    }
+    if let Some(f) = &failure {
+        summary.status = format!("failed: {f}");
+    }
+    writer.write_summary(&summary)?;
+    match failure {
+        Some(e) => Err(e),
+        None => Ok(summary),
+    }
+}
+
+/// The input's ground-truth surface, when it has one.
+fn load_truth(dataset: &Dataset) -> Result<Option<SurfelSet>, PipelineError> {
+    let truth_file = dataset.dir().join(GT_SURFACE_FILE);
+    Ok(if truth_file.exists() { Some(ply::read_surfels(&truth_file)?) } else { None })
+}
+
+fn stage_error(pipeline: &Pipeline, frame: usize, source: capsule_slam_framework::error::StageError) -> PipelineError {
+    PipelineError::Stage { frame, stage: pipeline.resolved_config().pipeline.fuser.clone(), source }
+}

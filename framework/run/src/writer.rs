@@ -1,0 +1,225 @@
+//! The output folder of a run: `config.toml` (written first), `trajectory.txt`, `frames.csv`
+//! and `counters.jsonl` (one line per frame, flushed at once, so an interrupted run keeps every
+//! finished frame), then `map.ply` and `summary.json` at the end (also after a failure).
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use capsule_slam_framework::error::LoadError;
+use capsule_slam_framework::geometry::StampedPose;
+use capsule_slam_framework::map::SurfelSet;
+use capsule_slam_framework::pipeline::FrameRecord;
+use capsule_slam_io::{ply, tum};
+
+/// `summary.json`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Summary {
+    /// `complete`, or `failed at frame N: reason`.
+    pub status: String,
+    /// Frames processed.
+    pub frames: usize,
+    /// Frames whose tracking was lost.
+    pub frames_lost: usize,
+    /// Mean wall-clock ms per frame.
+    pub ms_per_frame_mean: f64,
+    /// 95th percentile ms per frame.
+    pub ms_per_frame_p95: f64,
+    /// Mean ms per stage.
+    pub ms_per_stage_mean: BTreeMap<String, f64>,
+    /// Surfels in the final map.
+    pub surfels: usize,
+    /// Active surfels in the final map.
+    pub surfels_active: usize,
+    /// Loop closures applied.
+    pub loop_closures: usize,
+    /// Mean of every counter the stages reported, keyed `plugin.counter`.
+    pub counters_mean: BTreeMap<String, f64>,
+    /// Sum of every counter over the frames that reported it (event counts such as
+    /// `deformation.accepted`).
+    pub counters_sum: BTreeMap<String, f64>,
+    /// ATE RMSE after SE(3) alignment, metres, when the input has ground truth.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ate_rmse_m: Option<f64>,
+    /// Further metrics (evaluation against ground truth), flattened into the JSON.
+    #[serde(flatten)]
+    pub metrics: BTreeMap<String, f64>,
+    /// The resolved configuration.
+    pub pipeline: serde_json::Value,
+}
+
+impl Summary {
+    /// Timing and count statistics of the records.
+    pub fn from_records(records: &[FrameRecord]) -> Self {
+        let n = records.len();
+        let mut totals: Vec<f64> = records.iter().map(|r| r.total_ms).collect();
+        totals.sort_by(f64::total_cmp);
+        let mean = |v: &mut dyn Iterator<Item = f64>| if n == 0 { 0.0 } else { v.sum::<f64>() / n as f64 };
+        let mut per_stage = BTreeMap::new();
+        for (k, (name, _)) in capsule_slam_framework::pipeline::StageTimes::default().named().iter().enumerate() {
+            per_stage.insert((*name).to_owned(), mean(&mut records.iter().map(|r| r.ms.named()[k].1)));
+        }
+        let p95 = if n == 0 { 0.0 } else { totals[((0.95 * n as f64).ceil() as usize).clamp(1, n) - 1] };
+        let last = records.last();
+        let mut sums: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+        for r in records {
+            for (plugin, rep) in &r.reports {
+                for (k, v) in &rep.counters {
+                    let e = sums.entry(format!("{plugin}.{k}")).or_insert((0.0, 0));
+                    e.0 += v;
+                    e.1 += 1;
+                }
+            }
+        }
+        Self {
+            status: "complete".into(),
+            frames: n,
+            frames_lost: records.iter().filter(|r| r.status == capsule_slam_framework::stage::TrackStatus::Lost).count(),
+            ms_per_frame_mean: mean(&mut totals.iter().copied()),
+            ms_per_frame_p95: p95,
+            ms_per_stage_mean: per_stage,
+            surfels: last.map_or(0, |r| r.map.total),
+            surfels_active: last.map_or(0, |r| r.map.active),
+            loop_closures: records.iter().filter(|r| r.loop_closed).count(),
+            counters_mean: sums.iter().map(|(k, (s, n))| (k.clone(), s / *n as f64)).collect(),
+            counters_sum: sums.into_iter().map(|(k, (s, _))| (k, s)).collect(),
+            ..Self::default()
+        }
+    }
+}
+
+/// The immediate effect of each loop closure (with `RunOptions::closure_report`).
+pub const CLOSURES_FILE: &str = "closures.csv";
+
+/// Per-frame counters of every stage, one JSON object a line.
+pub const COUNTERS_FILE: &str = "counters.jsonl";
+
+/// One line of `counters.jsonl`: `{"frame": N, "plugin.counter": value, ...}` (keys sorted; a
+/// non-finite value is written as `null`, as JSON has no NaN).
+pub fn counters_line(r: &FrameRecord) -> String {
+    let mut obj = serde_json::Map::new();
+    obj.insert("frame".into(), serde_json::Value::from(r.index));
+    for (plugin, rep) in &r.reports {
+        for (k, v) in &rep.counters {
+            obj.insert(format!("{plugin}.{k}"), serde_json::Number::from_f64(*v).map_or(serde_json::Value::Null, serde_json::Value::Number));
+        }
+    }
+    serde_json::Value::Object(obj).to_string()
+}
+
+/// Writes a run's output folder as the run goes.
+pub struct RunWriter {
+    dir: PathBuf,
+    trajectory: BufWriter<File>,
+    frames: BufWriter<File>,
+    counters: BufWriter<File>,
+    closures: Option<BufWriter<File>>,
+}
+
+/// Header of `frames.csv`.
+pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_depth,ms_track,ms_loop,ms_fuse,ms_predict,ms_total,surfels_total,surfels_active,surfels_added,surfels_merged,tracker_inliers,tracker_residual,loop_closure,depth_abs_rel";
+
+impl RunWriter {
+    /// Creates the folder and writes `config.toml`; opens the streamed files.
+    pub fn create(dir: &Path, resolved_config: &str) -> Result<Self, LoadError> {
+        std::fs::create_dir_all(dir).map_err(|e| LoadError::io(dir, e))?;
+        let cfg = dir.join("config.toml");
+        std::fs::write(&cfg, resolved_config).map_err(|e| LoadError::io(&cfg, e))?;
+        let open = |name: &str, header: Option<&str>| -> Result<BufWriter<File>, LoadError> {
+            let p = dir.join(name);
+            let mut f = BufWriter::new(File::create(&p).map_err(|e| LoadError::io(&p, e))?);
+            if let Some(header) = header {
+                writeln!(f, "{header}").and_then(|()| f.flush()).map_err(|e| LoadError::io(&p, e))?;
+            }
+            Ok(f)
+        };
+        Ok(Self {
+            dir: dir.to_owned(),
+            trajectory: open("trajectory.txt", Some("# timestamp tx ty tz qx qy qz qw"))?,
+            frames: open("frames.csv", Some(FRAMES_CSV_HEADER))?,
+            counters: open(COUNTERS_FILE, None)?,
+            closures: None,
+        })
+    }
+
+    /// The output folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Appends one frame to `trajectory.txt`, `frames.csv` and `counters.jsonl` and flushes them.
+    pub fn write_frame(&mut self, r: &FrameRecord) -> Result<(), LoadError> {
+        let pose = StampedPose { timestamp_s: r.timestamp_s, t_world_cam: r.t_world_cam };
+        let tp = self.dir.join("trajectory.txt");
+        writeln!(self.trajectory, "{}", tum::format_pose(&pose)).and_then(|()| self.trajectory.flush()).map_err(|e| LoadError::io(&tp, e))?;
+        let m = r.ms;
+        let line = format!(
+            "{},{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{:.6e},{},{}",
+            r.index,
+            r.timestamp_s,
+            r.status.as_str(),
+            m.preprocess,
+            m.depth,
+            m.track,
+            m.loop_close,
+            m.fuse,
+            m.predict,
+            r.total_ms,
+            r.map.total,
+            r.map.active,
+            r.fuse.added,
+            r.fuse.merged,
+            r.inliers,
+            r.residual_rms,
+            u8::from(r.loop_closed),
+            r.depth_abs_rel.map(|a| format!("{a:.5}")).unwrap_or_default()
+        );
+        let fp = self.dir.join("frames.csv");
+        writeln!(self.frames, "{line}").and_then(|()| self.frames.flush()).map_err(|e| LoadError::io(&fp, e))?;
+        let cp = self.dir.join(COUNTERS_FILE);
+        writeln!(self.counters, "{}", counters_line(r)).and_then(|()| self.counters.flush()).map_err(|e| LoadError::io(&cp, e))
+    }
+
+    /// Appends one loop closure's scores just before and just after it to `closures.csv`
+    /// (created with its header on the first closure): ATE of the trajectory up to the closure
+    /// and the map's surface RMSE, millimetres.
+    pub fn write_closure(&mut self, frame: usize, before: &BTreeMap<String, f64>, after: &BTreeMap<String, f64>) -> Result<(), LoadError> {
+        let p = self.dir.join(CLOSURES_FILE);
+        let f = match &mut self.closures {
+            Some(f) => f,
+            None => {
+                let mut f = BufWriter::new(File::create(&p).map_err(|e| LoadError::io(&p, e))?);
+                writeln!(f, "frame,ate_before_mm,ate_after_mm,surface_rmse_before_mm,surface_rmse_after_mm").map_err(|e| LoadError::io(&p, e))?;
+                self.closures.insert(f)
+            }
+        };
+        let mm = |m: &BTreeMap<String, f64>, k: &str| m.get(k).map(|v| format!("{:.4}", v * 1e3)).unwrap_or_default();
+        let line = format!("{frame},{},{},{},{}", mm(before, "ate_rmse_m"), mm(after, "ate_rmse_m"), mm(before, "surface_rmse_m"), mm(after, "surface_rmse_m"));
+        writeln!(f, "{line}").and_then(|()| f.flush()).map_err(|e| LoadError::io(&p, e))
+    }
+
+    /// Replaces `trajectory.txt` with a corrected trajectory (after loop closures), keeping the
+    /// streamed online estimate as `trajectory_online.txt`.
+    pub fn rewrite_trajectory(&mut self, poses: &[StampedPose]) -> Result<(), LoadError> {
+        let cur = self.dir.join("trajectory.txt");
+        let online = self.dir.join("trajectory_online.txt");
+        self.trajectory.flush().map_err(|e| LoadError::io(&cur, e))?;
+        std::fs::copy(&cur, &online).map_err(|e| LoadError::io(&online, e))?;
+        tum::write_trajectory(&cur, poses)
+    }
+
+    /// Writes `map.ply`.
+    pub fn write_map(&self, set: &SurfelSet) -> Result<(), LoadError> {
+        ply::write_surfels(&self.dir.join("map.ply"), set)
+    }
+
+    /// Writes `summary.json`.
+    pub fn write_summary(&self, s: &Summary) -> Result<(), LoadError> {
+        let p = self.dir.join("summary.json");
+        let text = serde_json::to_string_pretty(s).map_err(|e| LoadError::parse(&p, 0, e.to_string()))?;
+        std::fs::write(&p, text + "\n").map_err(|e| LoadError::io(&p, e))
+    }
+}

@@ -1,0 +1,41 @@
+//! The parameters of the surfel map (Keller et al. 2013; ElasticFusion, Whelan et al. 2016),
+//! one type for both fusers: the CPU and the GPU map follow the same rules
+//! ([`super::surfel_rules`]) with the same constants. Every metric constant is organ scale; the
+//! doc of each gives ElasticFusion's room-scale value.
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of the surfel map, shared by `surfel-cpu` and `surfel-gpu` (same keys, same
+    /// defaults: `[plugins.surfel-cpu]` and `[plugins.surfel-gpu]` mean the same).
+    pub struct SurfelParams {
+        /// Active time window δt: a surfel is active iff now − t ≤ δt (ElasticFusion: 200).
+        pub delta_t: u32 = 200; unit = "frames"; range = 1.0..=1.0e7;
+        /// Confidence at which a surfel becomes stable and is predicted (ElasticFusion: 10).
+        pub stable_confidence: f32 = 10.0; unit = "-"; range = 0.0..=1.0e6;
+        /// Unstable surfels not seen for this long are removed (ElasticFusion: 20).
+        pub unstable_lifetime: u32 = 20; unit = "frames"; range = 1.0..=1.0e7;
+        /// Association depth gate along the ray (ElasticFusion: 0.05 m, room scale).
+        pub depth_gate_m: f32 = 0.002; unit = "m"; range = 0.0..=10.0;
+        /// Association normal gate (ElasticFusion: 0.5 rad).
+        pub normal_gate_rad: f32 = 0.5; unit = "rad"; range = 0.0..=3.15;
+        /// Model normals with |n_z| below this skip the normal gate (ElasticFusion: 0.75).
+        pub normal_bypass_nz: f32 = 0.75; unit = "-"; range = 0.0..=1.0;
+        /// A measurement updates position and normal only if its radius is below this × the
+        /// surfel's (ElasticFusion: 1.5).
+        pub radius_ratio: f32 = 1.5; unit = "-"; range = 0.0..=100.0;
+        /// Depths nearer than this are ignored (ElasticFusion: 0.3 m, room scale).
+        pub min_depth_m: f32 = 0.002; unit = "m"; range = 0.0..=100.0;
+        /// Depths beyond this are ignored (ElasticFusion: depthCut 3 m, room scale).
+        pub max_depth_m: f32 = 0.25; unit = "m"; range = 0.0..=100.0;
+        /// Fuse one pixel in `subsample`² per frame, rotating with the frame index
+        /// (ElasticFusion: 2; 1 fuses every pixel).
+        pub subsample: u32 = 2; unit = "px"; range = 1.0..=8.0;
+        /// Bilateral filter for normals: window radius (ElasticFusion: 6, a 13×13 window).
+        pub bilateral_radius_px: u32 = 1; unit = "px"; range = 0.0..=10.0;
+        /// Bilateral filter for normals: spatial σ (ElasticFusion: 4.5 px).
+        pub bilateral_sigma_px: f32 = 2.0; unit = "px"; range = 0.1..=20.0;
+        /// Bilateral filter for normals: range σ (ElasticFusion: 0.03 m, room scale).
+        pub bilateral_sigma_m: f32 = 0.0008; unit = "m"; range = 1.0e-6..=10.0;
+        /// Depth step between neighbours above which no normal is computed (a depth edge).
+        pub edge_jump_m: f32 = 0.003; unit = "m"; range = 0.0..=10.0;
+    }
+}
