@@ -358,3 +358,56 @@ pub fn dilate(mask: &Mask, radius_px: usize, within: &Mask) -> Mask {
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn planes<'a>(img: &'a Rgb8, valid: &'a Mask, value: &'a [u8], saturation: &'a [f32]) -> Planes<'a> {
+        let (w, h) = img.size();
+        Planes { img, valid, value, saturation, w, h, half: 2 }
+    }
+
+    #[test]
+    fn a_sharp_bright_square_has_a_steep_rim_and_a_flat_one_none() {
+        let (w, h) = (12, 12);
+        let img = Rgb8::from_fn(w, h, |x, y| if (4..8).contains(&x) && (4..8).contains(&y) { [250; 3] } else { [40; 3] });
+        let (mut value, mut saturation) = (Vec::new(), Vec::new());
+        brightness_and_saturation(&img, &mut value, &mut saturation);
+        let valid = Mask::filled(w, h, true);
+        let px = planes(&img, &valid, &value, &saturation);
+        let members: Vec<usize> = (4..8).flat_map(|y| (4..8).map(move |x| y * w + x)).collect();
+        let mut label = vec![0u32; w * h];
+        for &k in &members {
+            label[k] = 1;
+        }
+        // The ring's Sobel magnitude: a 210-level step seen by the 3×3 kernel, ≥ 210 · 3 / 8 / √2.
+        let g = rim_gradient(&px, &members, &mut label).unwrap();
+        assert!(g > 50.0, "{g}");
+        assert!(label.iter().enumerate().all(|(k, l)| *l == u32::from(members.contains(&k))), "the ring marks are reset");
+        let flat = Rgb8::filled(w, h, 40);
+        brightness_and_saturation(&flat, &mut value, &mut saturation);
+        let px = planes(&flat, &valid, &value, &saturation);
+        assert_eq!(rim_gradient(&px, &members, &mut label), Some(0.0));
+        let everything: Vec<usize> = (0..w * h).collect();
+        let mut all = vec![1u32; w * h];
+        assert_eq!(rim_gradient(&px, &everything, &mut all), None, "a group without a ring");
+    }
+
+    #[test]
+    fn a_valid_mask_of_another_size_is_an_error() {
+        let p = DetectParams {
+            window_px: 5,
+            peak_sigma: 1.0,
+            min_value: 60.0,
+            max_saturation: 0.2,
+            min_rim_gradient: 2.0,
+            grow_ratio: 2.0,
+            grow_saturation: 0.25,
+            max_grow_px: 3,
+        };
+        let decode = std::array::from_fn(|v| v as f64 / 255.0);
+        let err = detect(&Rgb8::new(8, 8), &Mask::new(4, 4), &p, &decode, &mut Scratch::default()).unwrap_err().to_string();
+        assert!(err.contains("8×8"), "{err}");
+    }
+}

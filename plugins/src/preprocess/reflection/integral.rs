@@ -65,3 +65,25 @@ impl Integral {
         (n, mean, (s2 / n - mean * mean).max(0.0))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn window_statistics_equal_the_brute_force_ones_on_bin_aligned_windows() {
+        let (w, h) = (20, 14);
+        let value = |k: usize| ((k * 37 + 11) % 251) as u8;
+        let valid = |k: usize| k % 7 != 3;
+        let t = Integral::new(w, h, Vec::new(), |k| valid(k).then_some(value(k)));
+        for (x0, y0, x1, y1) in [(0, 0, w, h), (2, 4, 10, 12), (6, 0, 8, 2)] {
+            let px: Vec<f64> = (y0..y1).flat_map(|y| (x0..x1).map(move |x| y * w + x)).filter(|&k| valid(k)).map(|k| f64::from(value(k))).collect();
+            let n = px.len() as f64;
+            let mean = px.iter().sum::<f64>() / n;
+            let var = px.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+            let (cn, cm, cv) = t.stats(x0, y0, x1, y1);
+            assert_eq!(cn, n);
+            assert!((cm - mean).abs() < 1e-9 && (cv - var).abs() < 1e-6, "({x0},{y0})-({x1},{y1}): {cm} {cv} vs {mean} {var}");
+        }
+    }
+}

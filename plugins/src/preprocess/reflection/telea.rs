@@ -330,6 +330,19 @@ fn gradient(k: usize, w: usize, h: usize, value: impl Fn(usize) -> Option<f32>, 
 mod tests {
     use super::*;
 
+    #[test]
+    fn the_source_disc_holds_the_lattice_points_of_the_radius_but_the_centre() {
+        // Lattice points with 0 < |d|² ≤ r²: 4 at r = 1, 8 at r = 1.5, 12 at r = 2, 28 at r = 3.
+        for (r, n) in [(0.5, 4), (1.0, 4), (1.5, 8), (2.0, 12), (3.0, 28)] {
+            let disc = source_disc(r);
+            assert_eq!(disc.len(), n, "radius {r}");
+            for (dx, dy, inv_len, inv_d2) in disc {
+                let d2 = (dx * dx + dy * dy) as f64;
+                assert!((inv_d2 - 1.0 / d2).abs() < 1e-12 && (inv_len - 1.0 / d2.sqrt()).abs() < 1e-12);
+            }
+        }
+    }
+
     fn disc(w: usize, h: usize, cx: f64, cy: f64, r: f64) -> Mask {
         Mask::from_fn(w, h, |x, y| [(x as f64 - cx).powi(2) + (y as f64 - cy).powi(2) <= r * r])
     }
