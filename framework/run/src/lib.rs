@@ -4,7 +4,9 @@
 //! the evaluation against the input's ground truth when it has one.
 
 pub mod runner;
+pub mod summary;
 pub mod writer;
 
 pub use runner::{GT_SURFACE_FILE, RunOptions, run};
-pub use writer::{RunWriter, Summary};
+pub use summary::Summary;
+pub use writer::RunWriter;

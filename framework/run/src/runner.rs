@@ -7,7 +7,8 @@ use capsule_slam_framework::error::PipelineError;
 use capsule_slam_framework::geometry::StampedPose;
 use capsule_slam_io::{Dataset, ply};
 
-use crate::writer::{RunWriter, Summary};
+use crate::summary::{Summary, frame_row};
+use crate::writer::RunWriter;
 use capsule_slam_framework::map::SurfelSet;
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 
@@ -57,7 +58,7 @@ pub fn run(
                     let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
                     writer.write_closure(i, &b, &a)?;
                 }
-                writer.write_frame(&rec)?;
+                writer.write_frame(&frame_row(&rec))?;
                 on_frame(&rec);
                 records.push(rec);
             }

@@ -7,89 +7,12 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use serde::Serialize;
-
 use capsule_slam_framework::error::LoadError;
 use capsule_slam_framework::geometry::StampedPose;
 use capsule_slam_framework::map::SurfelSet;
-use capsule_slam_framework::pipeline::FrameRecord;
 use capsule_slam_io::{ply, tum};
 
-/// `summary.json`.
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
-pub struct Summary {
-    /// `complete`, or `failed at frame N: reason`.
-    pub status: String,
-    /// Frames processed.
-    pub frames: usize,
-    /// Frames whose tracking was lost.
-    pub frames_lost: usize,
-    /// Mean wall-clock ms per frame.
-    pub ms_per_frame_mean: f64,
-    /// 95th percentile ms per frame.
-    pub ms_per_frame_p95: f64,
-    /// Mean ms per stage.
-    pub ms_per_stage_mean: BTreeMap<String, f64>,
-    /// Surfels in the final map.
-    pub surfels: usize,
-    /// Active surfels in the final map.
-    pub surfels_active: usize,
-    /// Loop closures applied.
-    pub loop_closures: usize,
-    /// Mean of every counter the stages reported, keyed `plugin.counter`.
-    pub counters_mean: BTreeMap<String, f64>,
-    /// Sum of every counter over the frames that reported it (event counts such as
-    /// `deformation.accepted`).
-    pub counters_sum: BTreeMap<String, f64>,
-    /// ATE RMSE after SE(3) alignment, metres, when the input has ground truth.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub ate_rmse_m: Option<f64>,
-    /// Further metrics (evaluation against ground truth), flattened into the JSON.
-    #[serde(flatten)]
-    pub metrics: BTreeMap<String, f64>,
-    /// The resolved configuration.
-    pub pipeline: serde_json::Value,
-}
-
-impl Summary {
-    /// Timing and count statistics of the records.
-    pub fn from_records(records: &[FrameRecord]) -> Self {
-        let n = records.len();
-        let mut totals: Vec<f64> = records.iter().map(|r| r.total_ms).collect();
-        totals.sort_by(f64::total_cmp);
-        let mean = |v: &mut dyn Iterator<Item = f64>| if n == 0 { 0.0 } else { v.sum::<f64>() / n as f64 };
-        let mut per_stage = BTreeMap::new();
-        for (k, (name, _)) in capsule_slam_framework::pipeline::StageTimes::default().named().iter().enumerate() {
-            per_stage.insert((*name).to_owned(), mean(&mut records.iter().map(|r| r.ms.named()[k].1)));
-        }
-        let p95 = if n == 0 { 0.0 } else { totals[((0.95 * n as f64).ceil() as usize).clamp(1, n) - 1] };
-        let last = records.last();
-        let mut sums: BTreeMap<String, (f64, usize)> = BTreeMap::new();
-        for r in records {
-            for (plugin, rep) in &r.reports {
-                for (k, v) in &rep.counters {
-                    let e = sums.entry(format!("{plugin}.{k}")).or_insert((0.0, 0));
-                    e.0 += v;
-                    e.1 += 1;
-                }
-            }
-        }
-        Self {
-            status: "complete".into(),
-            frames: n,
-            frames_lost: records.iter().filter(|r| r.status == capsule_slam_framework::stage::TrackStatus::Lost).count(),
-            ms_per_frame_mean: mean(&mut totals.iter().copied()),
-            ms_per_frame_p95: p95,
-            ms_per_stage_mean: per_stage,
-            surfels: last.map_or(0, |r| r.map.total),
-            surfels_active: last.map_or(0, |r| r.map.active),
-            loop_closures: records.iter().filter(|r| r.loop_closed).count(),
-            counters_mean: sums.iter().map(|(k, (s, n))| (k.clone(), s / *n as f64)).collect(),
-            counters_sum: sums.into_iter().map(|(k, (s, _))| (k, s)).collect(),
-            ..Self::default()
-        }
-    }
-}
+use crate::summary::{FrameRow, Summary};
 
 /// The immediate effect of each loop closure (with `RunOptions::closure_report`).
 pub const CLOSURES_FILE: &str = "closures.csv";
@@ -99,13 +22,11 @@ pub const COUNTERS_FILE: &str = "counters.jsonl";
 
 /// One line of `counters.jsonl`: `{"frame": N, "plugin.counter": value, ...}` (keys sorted; a
 /// non-finite value is written as `null`, as JSON has no NaN).
-pub fn counters_line(r: &FrameRecord) -> String {
+pub fn counters_line(frame: usize, counters: &BTreeMap<String, f64>) -> String {
     let mut obj = serde_json::Map::new();
-    obj.insert("frame".into(), serde_json::Value::from(r.index));
-    for (plugin, rep) in &r.reports {
-        for (k, v) in &rep.counters {
-            obj.insert(format!("{plugin}.{k}"), serde_json::Number::from_f64(*v).map_or(serde_json::Value::Null, serde_json::Value::Number));
-        }
+    obj.insert("frame".into(), serde_json::Value::from(frame));
+    for (k, v) in counters {
+        obj.insert(k.clone(), serde_json::Number::from_f64(*v).map_or(serde_json::Value::Null, serde_json::Value::Number));
     }
     serde_json::Value::Object(obj).to_string()
 }
@@ -151,36 +72,30 @@ impl RunWriter {
     }
 
     /// Appends one frame to `trajectory.txt`, `frames.csv` and `counters.jsonl` and flushes them.
-    pub fn write_frame(&mut self, r: &FrameRecord) -> Result<(), LoadError> {
-        let pose = StampedPose { timestamp_s: r.timestamp_s, t_world_cam: r.t_world_cam };
+    pub fn write_frame(&mut self, r: &FrameRow) -> Result<(), LoadError> {
         let tp = self.dir.join("trajectory.txt");
-        writeln!(self.trajectory, "{}", tum::format_pose(&pose)).and_then(|()| self.trajectory.flush()).map_err(|e| LoadError::io(&tp, e))?;
-        let m = r.ms;
+        writeln!(self.trajectory, "{}", tum::format_pose(&r.pose)).and_then(|()| self.trajectory.flush()).map_err(|e| LoadError::io(&tp, e))?;
+        let ms: Vec<String> = r.ms.iter().map(|(_, v)| format!("{v:.3}")).collect();
         let line = format!(
-            "{},{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{:.6e},{},{}",
+            "{},{:.6},{},{},{:.3},{},{},{},{},{},{:.6e},{},{}",
             r.index,
-            r.timestamp_s,
-            r.status.as_str(),
-            m.preprocess,
-            m.depth,
-            m.track,
-            m.loop_close,
-            m.fuse,
-            m.predict,
+            r.pose.timestamp_s,
+            r.status,
+            ms.join(","),
             r.total_ms,
-            r.map.total,
-            r.map.active,
-            r.fuse.added,
-            r.fuse.merged,
-            r.inliers,
-            r.residual_rms,
-            u8::from(r.loop_closed),
+            r.surfels_total,
+            r.surfels_active,
+            r.surfels_added,
+            r.surfels_merged,
+            r.tracker_inliers,
+            r.tracker_residual,
+            u8::from(r.loop_closure),
             r.depth_abs_rel.map(|a| format!("{a:.5}")).unwrap_or_default()
         );
         let fp = self.dir.join("frames.csv");
         writeln!(self.frames, "{line}").and_then(|()| self.frames.flush()).map_err(|e| LoadError::io(&fp, e))?;
         let cp = self.dir.join(COUNTERS_FILE);
-        writeln!(self.counters, "{}", counters_line(r)).and_then(|()| self.counters.flush()).map_err(|e| LoadError::io(&cp, e))
+        writeln!(self.counters, "{}", counters_line(r.index, &r.counters)).and_then(|()| self.counters.flush()).map_err(|e| LoadError::io(&cp, e))
     }
 
     /// Appends one loop closure's scores just before and just after it to `closures.csv`
