@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
-use capsule_slam_eval::report::{EvalOptions, evaluate, table};
+use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live, table};
 use capsule_slam_eval::rpe::Delta;
 use capsule_slam_eval::{align_trajectory, associate};
 use capsule_slam_framework::geometry::StampedPose;
@@ -36,6 +36,14 @@ pub struct EvalArgs {
     /// Reconstructed map (PLY).
     #[arg(long)]
     map: Option<PathBuf>,
+    /// The true surface at the last frame (PLY, e.g. a phantom's `gt_surface_NNNNNN.ply`) for
+    /// the live surface error: the map's surfels seen in the last 30 frames, moved by the
+    /// trajectory alignment, against it; needs --map.
+    #[arg(long)]
+    live_surface_gt: Option<PathBuf>,
+    /// The frame the live surface error is measured at (default: the map's newest surfel).
+    #[arg(long)]
+    last_frame: Option<u32>,
     /// Write the figures as JSON (same keys as summary.json).
     #[arg(long)]
     json: Option<PathBuf>,
@@ -62,7 +70,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         None => Delta::Frames(args.rpe_delta),
     };
     let opts = EvalOptions { tolerance_s: args.tolerance, sim3, rpe_delta, ..EvalOptions::default() };
-    let figures = evaluate(&est, &gt, surfaces.as_ref().map(|(m, g)| (m, g)), &opts);
+    let mut figures = evaluate(&est, &gt, surfaces.as_ref().map(|(m, g)| (m, g)), &opts);
+    if let Some(live) = &args.live_surface_gt {
+        let Some(map) = &args.map else { bail!("--live-surface-gt needs --map") };
+        let map = ply::read_surfels(map).context("reading the map")?;
+        let now = ply::read_surfels(live).with_context(|| format!("reading the true surface {}", live.display()))?;
+        let last = args.last_frame.or_else(|| map.surfels.iter().map(|s| s.t).max()).unwrap_or(0);
+        let live_figures = evaluate_live(&est, &gt, &map, &now, last, &opts);
+        if live_figures.is_empty() {
+            bail!("no surfel of the map was seen in the 30 frames up to frame {last}; give --last-frame");
+        }
+        figures.extend(live_figures);
+    }
     if !figures.contains_key("ate_rmse_m") {
         bail!("fewer than 3 poses of {} match {} within {} s", args.est.display(), args.gt.display(), args.tolerance);
     }

@@ -4,15 +4,17 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
+use capsule_slam_eval::report::EvalOptions;
 use capsule_slam_framework::config::Config;
+use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::pipeline::Pipeline;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Registry, StageKind};
 use capsule_slam_io::Dataset;
 use capsule_slam_phantom::PhantomSpec;
 use capsule_slam_phantom::writer::is_complete;
-use capsule_slam_run::RunWriter;
 use capsule_slam_run::{RunOptions, run as run_pipeline};
+use capsule_slam_run::{RunWriter, Summary};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Arguments of `run`.
@@ -117,6 +119,13 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     bar.finish_and_clear();
     let summary = result.with_context(|| format!("run stopped; the output so far is in {}", out.display()))?;
 
+    print_summary(&summary, pipeline.depth_source());
+    println!("outputs           {}", out.display());
+    Ok(())
+}
+
+/// Prints the run's figures (and what it could not measure).
+fn print_summary(summary: &Summary, depth_source: DepthSource) {
     println!("frames            {}", summary.frames);
     println!("frames lost       {}", summary.frames_lost);
     println!("ms per frame      {:.2} mean, {:.2} p95", summary.ms_per_frame_mean, summary.ms_per_frame_p95);
@@ -141,9 +150,22 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
         println!("surface RMSE      {:.3} mm", r * 1e3);
         println!("completeness      {:.1} % of the observed truth within 1 mm ({:.1} % of the truth observed in ≥ 10 frames)", c * 100.0, c10 * 100.0);
     }
+    if let (Some(r), Some(med), Some(p95)) =
+        (summary.metrics.get("live_surface_rmse_m"), summary.metrics.get("live_surface_median_m"), summary.metrics.get("live_surface_p95_m"))
+    {
+        let align = if depth_source == DepthSource::Estimated { "Sim(3)" } else { "SE(3)" };
+        println!(
+            "live surface      {:.3} mm RMSE, {:.3} median, {:.3} p95 (surfels seen in the last {} frames, {align}-aligned, against the wall at the last frame)",
+            r * 1e3,
+            med * 1e3,
+            p95 * 1e3,
+            EvalOptions::default().live_window_frames
+        );
+    }
     if let Some(a) = summary.metrics.get("depth_abs_rel") {
         println!("depth AbsRel      {a:.4} (estimated against the input's depth, mean over frames)");
     }
-    println!("outputs           {}", out.display());
-    Ok(())
+    for w in &summary.warnings {
+        eprintln!("warning: {w}");
+    }
 }

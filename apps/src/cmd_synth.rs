@@ -29,6 +29,11 @@ pub struct SynthArgs {
     /// Peristaltic wall motion amplitude, mm (0 = rigid).
     #[arg(long = "deform", value_name = "MM", default_value_t = 0.0)]
     pub deform_mm: f64,
+    /// With wall motion, also write the true surface at every N-th frame
+    /// (`gt_surface_NNNNNN.ply`; the first, middle and last frame always get one), for the live
+    /// surface error of `run` and `eval`.
+    #[arg(long = "surface-every", value_name = "N", default_value_t = 0)]
+    pub surface_every: usize,
     /// Scale of the specular highlights (default: 1, preset 7: 2.5; 0 = none).
     #[arg(long)]
     pub specular: Option<f64>,
@@ -73,6 +78,7 @@ impl SynthArgs {
         s.size = SizePreset::parse(&self.size).ok_or_else(|| anyhow!("--size {}: use naneye, 320, voyager or potensic", self.size))?;
         s.seed = self.seed;
         s.deform_mm = self.deform_mm;
+        s.surface_every = self.surface_every;
         if let Some(v) = self.specular {
             s.specular = v;
         }

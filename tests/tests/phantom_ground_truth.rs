@@ -57,7 +57,7 @@ fn a_deforming_phantom_writes_the_surface_at_chosen_frames() {
     let phantom = Phantom::new(spec(5, 3.0)).unwrap();
     write_sequence(&phantom, tmp.path(), &|_| {}).unwrap();
     let rest = ply::read_surfels(&tmp.path().join("gt_surface.ply")).unwrap();
-    for i in surface_frames(5) {
+    for i in surface_frames(5, 0) {
         let at = ply::read_surfels(&tmp.path().join(format!("gt_surface_{i:06}.ply"))).unwrap();
         assert_eq!(at.len(), rest.len());
         let moved = at.surfels.iter().zip(&rest.surfels).map(|(a, b)| (a.position_m - b.position_m).norm()).fold(0.0f32, f32::max);

@@ -5,6 +5,7 @@
 
 pub mod align;
 pub use capsule_slam_framework::depth_error as depth;
+pub mod live;
 pub mod report;
 pub mod rpe;
 pub mod surface;

@@ -3,6 +3,7 @@
 
 use std::collections::BTreeMap;
 
+use super::live::live_surface_error;
 use super::rpe::{Delta, rpe};
 use super::surface::{SurfaceOptions, surface_error};
 use super::{align_trajectory, ate, path_length_m};
@@ -20,11 +21,13 @@ pub struct EvalOptions {
     pub rpe_delta: Delta,
     /// Surface error options.
     pub surface: SurfaceOptions,
+    /// The live surface error counts the surfels seen in the last this many frames.
+    pub live_window_frames: u32,
 }
 
 impl Default for EvalOptions {
     fn default() -> Self {
-        Self { tolerance_s: 0.02, sim3: false, rpe_delta: Delta::Frames(1), surface: SurfaceOptions::default() }
+        Self { tolerance_s: 0.02, sim3: false, rpe_delta: Delta::Frames(1), surface: SurfaceOptions::default(), live_window_frames: 30 }
     }
 }
 
@@ -82,7 +85,7 @@ pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet
 
 /// A readable table of the figures (millimetres and degrees).
 pub fn table(m: &BTreeMap<String, f64>) -> String {
-    let rows: [(&str, &str, f64, &str); 17] = [
+    let rows: [(&str, &str, f64, &str); 20] = [
         ("path_length_m", "path length", 1e3, "mm"),
         ("ate_rmse_m", "ATE RMSE, SE(3)", 1e3, "mm"),
         ("ate_rmse_sim3_m", "ATE RMSE, Sim(3)", 1e3, "mm"),
@@ -100,6 +103,9 @@ pub fn table(m: &BTreeMap<String, f64>) -> String {
         ("surface_completeness_2mm", "completeness ≤ 2 mm", 100.0, "%"),
         ("surface_completeness_1mm_seen10", "  of truth seen ≥ 10×, ≤ 1 mm", 100.0, "%"),
         ("surface_completeness_2mm_seen10", "  of truth seen ≥ 10×, ≤ 2 mm", 100.0, "%"),
+        ("live_surface_rmse_m", "live surface RMSE", 1e3, "mm"),
+        ("live_surface_median_m", "live surface median", 1e3, "mm"),
+        ("live_surface_p95_m", "live surface p95", 1e3, "mm"),
     ];
     let mut out = String::new();
     for (key, label, scale, unit) in rows {
@@ -108,4 +114,28 @@ pub fn table(m: &BTreeMap<String, f64>) -> String {
         }
     }
     out
+}
+
+/// The live surface error of `map` against `truth_now`, the true surface at `last_frame`
+/// (surfels seen in the last `live_window_frames` frames, moved by the trajectory alignment of
+/// the headline ATE: SE(3), or Sim(3) with `sim3`). Keys `live_surface_rmse_m`,
+/// `live_surface_median_m`, `live_surface_p95_m`, `live_surface_points`; empty when nothing is
+/// live or the trajectory cannot be aligned.
+pub fn evaluate_live(
+    est: &[StampedPose],
+    gt: &[StampedPose],
+    map: &SurfelSet,
+    truth_now: &SurfelSet,
+    last_frame: u32,
+    opts: &EvalOptions,
+) -> BTreeMap<String, f64> {
+    let mut m = BTreeMap::new();
+    let Some(align) = align_trajectory(est, gt, opts.tolerance_s, opts.sim3) else { return m };
+    if let Some(e) = live_surface_error(map, &align, truth_now, last_frame, opts.live_window_frames, opts.surface.plane_radius_m) {
+        m.insert("live_surface_rmse_m".into(), e.rmse_m);
+        m.insert("live_surface_median_m".into(), e.median_m);
+        m.insert("live_surface_p95_m".into(), e.p95_m);
+        m.insert("live_surface_points".into(), e.points as f64);
+    }
+    m
 }

@@ -57,15 +57,30 @@ pub struct SurfaceError {
     pub truth_points: usize,
 }
 
-struct Truth {
+/// The ground-truth surface with a k-d tree over its samples.
+pub(crate) struct Truth {
     tree: ImmutableKdTree<f32, 3>,
     points: Vec<Point3<f64>>,
     normals: Vec<Vector3<f64>>,
 }
 
 impl Truth {
-    /// Nearest truth sample of `p`: (index, distance to the surface).
-    fn distance(&self, p: &Point3<f64>, plane_radius_m: f64) -> (usize, f64) {
+    /// The samples of `truth` in a k-d tree (`None` when it is empty or the tree cannot be built).
+    pub(crate) fn new(truth: &SurfelSet) -> Option<Self> {
+        if truth.is_empty() {
+            return None;
+        }
+        let pts: Vec<[f32; 3]> = truth.surfels.iter().map(|s| [s.position_m.x, s.position_m.y, s.position_m.z]).collect();
+        Some(Self {
+            tree: ImmutableKdTree::new_from_slice(&pts).ok()?,
+            points: truth.surfels.iter().map(|s| s.position_m.cast()).collect(),
+            normals: truth.surfels.iter().map(|s| s.normal.cast::<f64>().try_normalize(1e-9).unwrap_or_else(Vector3::z)).collect(),
+        })
+    }
+
+    /// Nearest truth sample of `p`: (index, distance to the surface): along the sample's normal
+    /// within `plane_radius_m` of it laterally, Euclidean beyond.
+    pub(crate) fn distance(&self, p: &Point3<f64>, plane_radius_m: f64) -> (usize, f64) {
         let r = self.tree.query(&[p.x as f32, p.y as f32, p.z as f32]).nearest_one::<SquaredEuclidean<f32>>().execute();
         let i = r.item as usize;
         let d = p - self.points[i];
@@ -79,15 +94,10 @@ impl Truth {
 /// Truth points with confidence 0 (never observed) are left out of completeness. `None` when
 /// either set is empty.
 pub fn surface_error(map: &SurfelSet, truth: &SurfelSet, initial: &Iso3, opts: &SurfaceOptions) -> Option<SurfaceError> {
-    if map.is_empty() || truth.is_empty() {
+    if map.is_empty() {
         return None;
     }
-    let pts: Vec<[f32; 3]> = truth.surfels.iter().map(|s| [s.position_m.x, s.position_m.y, s.position_m.z]).collect();
-    let truth_set = Truth {
-        tree: ImmutableKdTree::new_from_slice(&pts).ok()?,
-        points: truth.surfels.iter().map(|s| s.position_m.cast()).collect(),
-        normals: truth.surfels.iter().map(|s| s.normal.cast::<f64>().try_normalize(1e-9).unwrap_or_else(Vector3::z)).collect(),
-    };
+    let truth_set = Truth::new(truth)?;
     let step = map.len().div_ceil(opts.max_points.max(1)).max(1);
     let src: Vec<Point3<f64>> = map.surfels.iter().step_by(step).map(|s| s.position_m.cast()).collect();
     let t = align_point_to_plane(&src, &truth_set, initial, opts);

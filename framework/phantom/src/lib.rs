@@ -89,6 +89,10 @@ pub struct PhantomSpec {
     pub distortion_k1: f64,
     /// Frame rate, Hz.
     pub frame_rate_hz: f64,
+    /// With wall motion, the true surface is also written at every this many frames (0: only
+    /// at the first, middle and last frame), for the live surface error.
+    #[serde(default)]
+    pub surface_every: usize,
 }
 
 impl PhantomSpec {
@@ -107,6 +111,7 @@ impl PhantomSpec {
             motion_blur: 1,
             distortion_k1: 0.0,
             frame_rate_hz: 30.0,
+            surface_every: 0,
         }
     }
 

@@ -18,9 +18,14 @@ use capsule_slam_framework::geometry::StampedPose;
 use capsule_slam_framework::image::{Gray8, Rgb8};
 use capsule_slam_io::{images, ply, tum};
 
-/// The frames that get a deformed ground-truth surface.
-pub fn surface_frames(n: usize) -> Vec<usize> {
+/// The frames of an `n`-frame sequence that get a deformed ground-truth surface: the first, the
+/// middle, the last and (`every` > 0) every `every`-th, in order.
+pub fn surface_frames(n: usize, every: usize) -> Vec<usize> {
     let mut v = vec![0, n / 2, n.saturating_sub(1)];
+    if every > 0 {
+        v.extend((0..n).step_by(every));
+    }
+    v.sort_unstable();
     v.dedup();
     v
 }
@@ -80,7 +85,7 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
     }
     ply::write_surfels(&dir.join("gt_surface.ply"), &surface)?;
     if phantom.shape.wave_m > 0.0 {
-        for i in surface_frames(n) {
+        for i in surface_frames(n, phantom.spec.surface_every) {
             let mut at = phantom.surface(phantom.time_s(i), SURFACE_SPACING_M);
             for (s, r) in at.surfels.iter_mut().zip(&surface.surfels) {
                 s.confidence = r.confidence;

@@ -2,8 +2,9 @@
 //! with that error after writing what exists: the trajectory and `frames.csv` up to frame
 //! N − 1, the map and a `summary.json` whose status names the failure.
 
-use capsule_slam_eval::report::{EvalOptions, evaluate};
+use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live};
 use capsule_slam_framework::error::PipelineError;
+use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::geometry::StampedPose;
 use capsule_slam_io::{Dataset, ply};
 
@@ -86,15 +87,7 @@ pub fn run(
     }
     let mut summary = Summary::from_records(&records);
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
-    let gt = dataset.ground_truth();
-    if !gt.is_empty() && !records.is_empty() {
-        let surfaces = match (&map, &truth) {
-            (Some(m), Some(t)) if !m.is_empty() => Some((m, t)),
-            _ => None,
-        };
-        summary.metrics = evaluate(pipeline.trajectory(), gt, surfaces, &eval_opts);
-        summary.ate_rmse_m = summary.metrics.remove("ate_rmse_m");
-    }
+    evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
     if !abs_rel.is_empty() {
         summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
@@ -107,6 +100,74 @@ pub fn run(
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// The figures against the input's ground truth, into `summary`: trajectory and surface
+/// error, and the live surface error at the last frame (or a warning why there is none).
+fn evaluate_run(
+    dataset: &Dataset,
+    pipeline: &Pipeline,
+    records: &[FrameRecord],
+    map: Option<&SurfelSet>,
+    truth: Option<&SurfelSet>,
+    eval_opts: &EvalOptions,
+    summary: &mut Summary,
+) -> Result<(), PipelineError> {
+    let gt = dataset.ground_truth();
+    if gt.is_empty() || records.is_empty() {
+        return Ok(());
+    }
+    let surfaces = match (map, truth) {
+        (Some(m), Some(t)) if !m.is_empty() => Some((m, t)),
+        _ => None,
+    };
+    summary.metrics = evaluate(pipeline.trajectory(), gt, surfaces, eval_opts);
+    summary.ate_rmse_m = summary.metrics.remove("ate_rmse_m");
+    let last = records.last().map_or(0, |r| r.index);
+    match (map, live_truth(dataset, truth, last)?) {
+        (Some(m), LiveTruth::At(now)) => {
+            // Monocular scale is only estimated: its live surface is aligned with Sim(3).
+            let live_opts = EvalOptions { sim3: pipeline.depth_source() == DepthSource::Estimated, ..*eval_opts };
+            summary.metrics.extend(evaluate_live(pipeline.trajectory(), gt, m, &now, last as u32, &live_opts));
+        }
+        (_, LiveTruth::Missing(why)) => summary.warnings.push(why),
+        _ => {}
+    }
+    Ok(())
+}
+
+/// The true surface at a frame, for the live surface error.
+enum LiveTruth {
+    /// The surface at that frame.
+    At(SurfelSet),
+    /// The input has no ground-truth surface.
+    None,
+    /// A deforming input without the surface at that frame: why the metric is off.
+    Missing(String),
+}
+
+/// The true surface at frame `last`: `gt_surface_<last>.ply` of a deforming phantom (one with
+/// per-frame surfaces), the rest shape of a rigid one.
+fn live_truth(dataset: &Dataset, rest: Option<&SurfelSet>, last: usize) -> Result<LiveTruth, PipelineError> {
+    let Some(rest) = rest else { return Ok(LiveTruth::None) };
+    let dir = dataset.dir();
+    let at = dir.join(format!("gt_surface_{last:06}.ply"));
+    if at.exists() {
+        return Ok(LiveTruth::At(ply::read_surfels(&at)?));
+    }
+    let deforming = std::fs::read_dir(dir)
+        .map_err(|e| capsule_slam_framework::LoadError::io(dir, e))?
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().starts_with("gt_surface_"));
+    Ok(if deforming {
+        LiveTruth::Missing(format!(
+            "live surface error off: the wall moves but {} has no true surface at the last frame {last} ({}); make the sequence with `capsule-slam synth --surface-every N` or run to a frame that has one",
+            dir.display(),
+            at.display()
+        ))
+    } else {
+        LiveTruth::At(rest.clone())
+    })
 }
 
 /// The input's ground-truth surface, when it has one.

@@ -43,6 +43,9 @@ pub struct Summary {
     pub metrics: BTreeMap<String, f64>,
     /// The resolved configuration.
     pub pipeline: serde_json::Value,
+    /// What the run could not measure, and why (e.g. a figure whose ground truth is missing).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 impl Summary {

@@ -143,6 +143,12 @@ impl Pipeline {
         self.loop_closures
     }
 
+    /// Whether the depth estimator measures depth or estimates it from the image (a monocular
+    /// pipeline's scale is only estimated: it is evaluated with Sim(3) alignment).
+    pub fn depth_source(&self) -> DepthSource {
+        self.stages.depth.1.source()
+    }
+
     /// Map counts.
     pub fn map_stats(&self) -> MapStats {
         self.stages.fuser.1.stats()

@@ -1,0 +1,58 @@
+//! The live surface error end to end: a phantom written with its true surface every few frames,
+//! the pipeline with exact depth and the ground-truth tracker, and what the run reports.
+#![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
+
+use capsule_slam_framework::config::Config;
+use capsule_slam_framework::pipeline::Pipeline;
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_io::Dataset;
+use capsule_slam_phantom::writer::write_sequence;
+use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
+use capsule_slam_run::{RunOptions, RunWriter, Summary, run};
+use capsule_slam_tests::stages::test_registry;
+
+fn phantom(dir: &std::path::Path, deform_mm: f64) {
+    let spec = PhantomSpec { frames: 40, size: SizePreset::NanEye, deform_mm, surface_every: 10, noise: 0.0, specular: 0.0, ..PhantomSpec::preset(2) };
+    write_sequence(&Phantom::new(spec).unwrap(), dir, &|_| {}).unwrap();
+}
+
+fn oracle_run(data: &std::path::Path, out: &std::path::Path, frames: usize) -> Summary {
+    let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", "pipeline.tracker=ground-truth", "input.initial_pose=ground-truth"];
+    let cfg = Config::load(None, &sets.map(String::from)).unwrap();
+    let ds = Dataset::open(data, &cfg.input, None).unwrap();
+    let mut p = Pipeline::build(&cfg, "test", &test_registry(), &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
+    let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
+    run(&ds, &mut p, &mut w, &RunOptions { max_frames: Some(frames), write_map: true, ..RunOptions::default() }, |_| {}).unwrap()
+}
+
+#[test]
+fn the_live_surface_of_an_oracle_run_lies_on_the_wall_and_a_moving_wall_shows_in_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (rigid, moving) = (tmp.path().join("rigid"), tmp.path().join("moving"));
+    phantom(&rigid, 0.0);
+    phantom(&moving, 4.0);
+    for i in [0, 10, 20, 30, 39] {
+        assert!(moving.join(format!("gt_surface_{i:06}.ply")).exists(), "--surface-every 10 writes frame {i}");
+    }
+    assert!(!rigid.join("gt_surface_000010.ply").exists(), "a rigid wall needs no surface per frame");
+
+    let still = oracle_run(&rigid, &tmp.path().join("out-rigid"), 40);
+    let live = |s: &Summary, k: &str| *s.metrics.get(k).unwrap_or_else(|| panic!("no {k} in {:?}", s.metrics.keys().collect::<Vec<_>>()));
+    // Exact depth at the true poses on a still wall (the rest shape is the truth at any frame):
+    // the fused surface lies on it.
+    assert!(live(&still, "live_surface_rmse_m") < 1e-4, "{}", live(&still, "live_surface_rmse_m"));
+    assert!(live(&still, "live_surface_points") > 1000.0);
+    assert!(still.warnings.is_empty(), "{:?}", still.warnings);
+
+    // On a 4 mm wave the map averages the wall's phases: the live surface is off the wall as
+    // it is at the last frame, by less than the wave.
+    let wave = oracle_run(&moving, &tmp.path().join("out-moving"), 40);
+    let r = live(&wave, "live_surface_rmse_m");
+    assert!(r > 5.0 * live(&still, "live_surface_rmse_m") && r < 0.004, "live surface RMSE {r}");
+    assert!(live(&wave, "live_surface_p95_m") >= live(&wave, "live_surface_median_m"));
+
+    // A run that ends where the moving wall has no true surface says so and reports no figure.
+    let short = oracle_run(&moving, &tmp.path().join("out-short"), 25);
+    assert!(!short.metrics.contains_key("live_surface_rmse_m"));
+    assert!(short.warnings.iter().any(|w| w.contains("frame 24") && w.contains("--surface-every")), "{:?}", short.warnings);
+}
