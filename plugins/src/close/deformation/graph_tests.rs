@@ -144,3 +144,54 @@ fn fixed_nodes_stay_and_the_free_ones_take_the_bend() {
     let lifted = g.deformation.warp_point(&Point3::new(0.04, 0.02, 0.03), 8);
     assert!((lifted.z - 0.031).abs() < 2e-4, "the constrained edge rises by 1 mm: {lifted}");
 }
+
+#[test]
+fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
+    let mut g = graph_on_sheet(0.01, Edges::SpaceInWindow);
+    for (j, n) in g.deformation.nodes.iter_mut().enumerate() {
+        let f = j as f64 * 0.53;
+        n.rotation = Matrix3::identity() + Matrix3::new(0.02, f.sin() * 0.05, 0.0, 0.01, 0.0, f.cos() * 0.03, 0.0, 0.02, -0.01);
+        n.translation_m = Vector3::new(f.sin(), 0.2, f.cos()) * 1e-3;
+    }
+    for (p, t) in sheet(0.008) {
+        g.constrain(Constraint { source_m: p, target_m: bend(&p), time: t });
+    }
+    let w = GraphWeights::default();
+    let n = UNKNOWNS * g.deformation.nodes.len();
+    // Dense J and r from the rows the solver visits.
+    let mut rows: Vec<(f64, Vec<(usize, f64)>)> = Vec::new();
+    g.visit(&w, |r, row| rows.push((r, row.to_vec())));
+    let mut jtj = nalgebra::DMatrix::<f64>::zeros(n, n);
+    let mut jtr = nalgebra::DVector::<f64>::zeros(n);
+    for (r, row) in &rows {
+        for &(i, ji) in row {
+            jtr[i] += ji * r;
+            for &(k, jk) in row {
+                jtj[(i, k)] += ji * jk;
+            }
+        }
+    }
+    let mut normal = g.normal_pattern(&w, n).unwrap();
+    let grad = g.assemble(&w, &mut normal);
+    for i in 0..n {
+        assert!((grad[i] - jtr[i]).abs() <= 1e-9 * (1.0 + jtr[i].abs()), "gradient {i}: {} vs {}", grad[i], jtr[i]);
+    }
+    // Every stored entry of the lower triangle equals the dense product (the diagonal carries
+    // the 1e-9 Levenberg term); every dense entry outside the pattern is zero.
+    let (col_ptr, row_idx) = (normal.a.symbolic().col_ptr().to_vec(), normal.a.symbolic().row_idx().to_vec());
+    let vals = normal.a.val_mut().to_vec();
+    let mut covered = nalgebra::DMatrix::<bool>::from_element(n, n, false);
+    for c in 0..n {
+        for s in col_ptr[c]..col_ptr[c + 1] {
+            let r = row_idx[s];
+            let expected = jtj[(r, c)] + if r == c { 1e-9 } else { 0.0 };
+            assert!((vals[s] - expected).abs() <= 1e-9 * (1.0 + expected.abs()), "({r}, {c}): {} vs {expected}", vals[s]);
+            covered[(r, c)] = true;
+        }
+    }
+    for c in 0..n {
+        for r in c..n {
+            assert!(covered[(r, c)] || jtj[(r, c)] == 0.0, "({r}, {c}) = {} is outside the pattern", jtj[(r, c)]);
+        }
+    }
+}
