@@ -8,7 +8,7 @@ use capsule_slam_framework::registry::{BuildEnv, PluginEntry};
 use capsule_slam_framework::stage::{FuseStats, LoopClosure, LoopInput};
 use capsule_slam_framework::{
     CameraFrame, Context, DepthEstimate, DepthEstimator, Fuser, Iso3, LoopCloser, ModelSet, ModelView, Plugin, RgbdFrame, StageError, Surfel, SurfelSet,
-    ViewKind,
+    TrackResult, Tracker, ViewKind,
 };
 use nalgebra::Vector3;
 
@@ -161,6 +161,45 @@ impl LoopCloser for ShiftCloser {
     }
 }
 
+capsule_slam_framework::plugin_params! {
+    /// Parameters of the test warping tracker.
+    pub struct WarpTrackerParams {
+        /// Translation of the whole map per tracked frame, metres.
+        pub shift_m: Vec<f64> = vec![0.0, 0.0, 0.0001]; unit = "m";
+    }
+}
+
+/// Tracks by the frame's ground-truth pose and returns, every frame after the first, a warp that
+/// translates the whole map by `shift_m`: a known non-rigid tracker's output, for the pipeline.
+pub struct WarpTracker {
+    params: WarpTrackerParams,
+}
+
+impl Plugin for WarpTracker {
+    const NAME: &'static str = "test-warp";
+    const SUMMARY: &'static str = "test only: ground-truth pose and a known warp of the map";
+    type Params = WarpTrackerParams;
+    fn build(params: WarpTrackerParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        if params.shift_m.len() != 3 {
+            return Err(StageError::invalid_input("shift_m needs 3 values"));
+        }
+        Ok(Self { params })
+    }
+}
+
+impl Tracker for WarpTracker {
+    fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, _t_world_prev: &Iso3, _ctx: &mut Context) -> Result<TrackResult, StageError> {
+        let pose = frame.gt_t_world_cam.ok_or_else(|| StageError::invalid_input("test-warp needs ground truth"))?;
+        let mut result = TrackResult::tracked(pose);
+        if model.is_some() {
+            let shift = Vector3::new(self.params.shift_m[0], self.params.shift_m[1], self.params.shift_m[2]);
+            let node = DeformationNode { translation_m: shift, ..DeformationNode::identity(pose.translation.vector.into(), 0) };
+            result.warp = Some(Deformation::new(vec![node], 1, Window::All));
+        }
+        Ok(result)
+    }
+}
+
 /// A stereo-only depth estimator, to test rig validation.
 pub struct StereoOnly;
 
@@ -195,5 +234,6 @@ pub fn test_registry() -> capsule_slam_framework::Registry {
     r.register(PluginEntry::fuser::<PointFuser>()).expect("register test-points");
     r.register(PluginEntry::loop_closer::<ShiftCloser>()).expect("register test-shift");
     r.register(PluginEntry::depth_estimator::<StereoOnly>()).expect("register test-stereo");
+    r.register(PluginEntry::tracker::<WarpTracker>()).expect("register test-warp");
     r
 }

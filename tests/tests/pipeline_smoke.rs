@@ -148,3 +148,37 @@ fn same_input_and_config_give_the_same_output() {
         assert_eq!(std::fs::read(tmp.path().join("a").join(f)).unwrap(), std::fs::read(tmp.path().join("b").join(f)).unwrap(), "{f} differs");
     }
 }
+
+#[test]
+fn a_trackers_warp_moves_the_map_before_fusion_and_a_fuser_without_warp_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    fixtures::write_dataset(&data, 6);
+    // surfel-cpu follows the warp: 5 warps of 0.1 mm along z, each before the frame is fused.
+    let run = |tracker: &str, out: &str| {
+        let sets =
+            ["pipeline.depth=sensor".to_string(), "pipeline.preprocess=[]".into(), format!("pipeline.tracker={tracker}"), "pipeline.fuser=surfel-cpu".into()];
+        let summary = run_on(&data, &tmp.path().join(out), &Config::load(None, &sets).unwrap()).unwrap();
+        (summary, ply::read_surfels(&tmp.path().join(out).join("map.ply")).unwrap())
+    };
+    let (summary, warped) = run("test-warp", "warped");
+    let (_, plain) = run("ground-truth", "plain");
+    assert_eq!(summary.frames_lost, 0);
+    let counters: Vec<serde_json::Value> =
+        std::fs::read_to_string(tmp.path().join("warped/counters.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(counters.iter().filter(|c| c.get("surfel-cpu.ms_warp").is_some()).count(), 5, "a warp on every frame after the first");
+    let mean_z = |map: &capsule_slam_framework::SurfelSet, t0: u32| {
+        let z: Vec<f64> = map.surfels.iter().filter(|s| s.t0 == t0).map(|s| f64::from(s.position_m.z)).collect();
+        assert!(!z.is_empty(), "no surfel created at frame {t0}");
+        z.iter().sum::<f64>() / z.len() as f64
+    };
+    // The first frame's surface was warped by up to 0.5 mm (less where later frames merged into
+    // it, measured where the wall is).
+    let first = mean_z(&warped, 0) - mean_z(&plain, 0);
+    assert!(first > 5e-5 && first <= 5e-4 + 1e-6, "frame 0's surface moved {first} m");
+
+    // A fuser that cannot deform stops the run with an error naming it.
+    let cfg = Config::load(None, &["pipeline.depth=sensor", "pipeline.tracker=test-warp", "pipeline.fuser=test-points"].map(String::from)).unwrap();
+    let err = run_on(&data, &tmp.path().join("points"), &cfg).unwrap_err().to_string();
+    assert!(err.contains("test-points") && err.contains("cannot deform"), "{err}");
+}

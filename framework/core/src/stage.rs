@@ -96,12 +96,16 @@ pub struct TrackResult {
     pub covariance: Option<Matrix6<f64>>,
     /// Gauss-Newton iterations run in total.
     pub iterations: usize,
+    /// A deformation of the map estimated with the pose (a non-rigid tracker: the wall moved
+    /// since the map saw it). The pipeline applies it to the map ([`Fuser::warp`]) before the
+    /// loop closer and the fusion see the map; `None` for a rigid tracker.
+    pub warp: Option<Deformation>,
 }
 
 impl TrackResult {
     /// A trusted pose with no statistics (oracle trackers).
     pub fn tracked(t_world_cam: Iso3) -> Self {
-        Self { t_world_cam, status: TrackStatus::Tracked, inliers: 0, residual_rms: 0.0, covariance: None, iterations: 0 }
+        Self { t_world_cam, status: TrackStatus::Tracked, inliers: 0, residual_rms: 0.0, covariance: None, iterations: 0, warp: None }
     }
 }
 
@@ -137,6 +141,15 @@ pub trait Fuser: Send {
     /// Applies a loop closure: deforms every surfel (positions and normals) and reactivates
     /// the matched inactive surfels seen from `closure.t_world_cam`.
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError>;
+    /// Moves every surfel (positions and normals) by a tracker's deformation of the map
+    /// ([`TrackResult::warp`]), so that the map follows a moving wall. A fuser that cannot
+    /// returns the default error, which stops a run whose tracker deforms.
+    fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
+        let _ = (deformation, ctx);
+        Err(StageError::invalid_input(
+            "this fuser cannot deform its map: choose a fuser that follows a deforming wall (surfel-cpu, surfel-gpu) or a rigid tracker",
+        ))
+    }
     /// Surfel counts (cheap: called every frame).
     fn stats(&self) -> MapStats;
     /// An exported copy of the whole map in canonical order (for output and tests; may be

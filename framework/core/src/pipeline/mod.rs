@@ -19,6 +19,7 @@ use crate::camera::Rig;
 use crate::config::validate::validate;
 use crate::config::{Config, InitialPose};
 use crate::context::{Context, StageReport};
+use crate::deformation::Deformation;
 use crate::depth_error::depth_error;
 use crate::error::{ConfigError, ConfigProblem, PipelineError, StageError};
 use crate::frame::{CameraFrame, DepthSource, RgbdFrame, Views};
@@ -171,6 +172,9 @@ impl Pipeline {
         let tr = self.track(&rgbd, &mut rec)?;
         let mut pose = tr.t_world_cam;
         if tr.status == TrackStatus::Tracked {
+            if let Some(warp) = &tr.warp {
+                self.warp_map(rgbd.index, warp, &mut rec)?;
+            }
             pose = self.close_loop(&rgbd, pose, &mut rec)?;
             self.fuse_and_predict(&rgbd, &pose, &mut rec)?;
         }
@@ -244,6 +248,16 @@ impl Pipeline {
         Ok(tr)
     }
 
+    /// Step 4 of a non-rigid tracker: its deformation of the map, applied before anything
+    /// else reads the map (timed with the fusion).
+    fn warp_map(&mut self, idx: usize, warp: &Deformation, rec: &mut FrameRecord) -> Result<(), PipelineError> {
+        let t = Instant::now();
+        let (fname, fuser) = &mut self.stages.fuser;
+        fuser.warp(warp, &mut Context::new(idx, &self.rig, self.prediction.as_ref(), report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
+        rec.ms.fuse += ms_since(t);
+        Ok(())
+    }
+
     /// Step 6: with a loop closer, the active and inactive models rendered at the tracked pose;
     /// an accepted closure deforms the map and the trajectory. Returns the (corrected) pose.
     fn close_loop(&mut self, rgbd: &RgbdFrame, pose: Iso3, rec: &mut FrameRecord) -> Result<Iso3, PipelineError> {
@@ -279,7 +293,7 @@ impl Pipeline {
         let (fname, fuser) = &mut self.stages.fuser;
         let t = Instant::now();
         rec.fuse = fuser.fuse(rgbd, pose, &mut Context::new(idx, rig, prediction, report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
-        rec.ms.fuse = ms_since(t);
+        rec.ms.fuse += ms_since(t);
         let t = Instant::now();
         let next = fuser.predict(pose, ModelSet::Active, &mut Context::new(idx, rig, prediction, report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
         rec.ms.predict = ms_since(t);

@@ -11,6 +11,7 @@
 
 mod splat;
 
+use capsule_slam_framework::deformation::Deformation;
 use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{FuseStats, LoopClosure};
@@ -51,6 +52,12 @@ impl SurfelCpu {
     /// The surfels, in creation order.
     pub fn surfels(&self) -> &[Surfel] {
         &self.surfels
+    }
+
+    /// Moves every surfel by `d` (Eqs. 5–7 of the deformation graph: positions and normals).
+    fn warp_surfels(&mut self, d: &Deformation) {
+        let warper = d.warper();
+        self.surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
     }
 
     fn is_active(&self, s: &Surfel, now: u32) -> bool {
@@ -143,15 +150,20 @@ impl Fuser for SurfelCpu {
     }
 
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {
-        let d = &closure.deformation;
         let clock = std::time::Instant::now();
-        let warper = d.warper();
-        self.surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        self.warp_surfels(&closure.deformation);
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         // Reactivate the stable inactive surfels seen from the corrected pose.
         let now = (ctx.frame_index as u32).max(self.now);
         let reactivated = reactivate(&mut self.surfels, &closure.t_world_cam, ctx.rig.camera(), now, &self.params);
         ctx.count("surfels_reactivated", reactivated as f64);
+        Ok(())
+    }
+
+    fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
+        let clock = std::time::Instant::now();
+        self.warp_surfels(deformation);
+        ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }
 

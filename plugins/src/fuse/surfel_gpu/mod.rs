@@ -16,10 +16,12 @@ mod device;
 mod kernels;
 mod layout;
 
+use capsule_slam_framework::deformation::Deformation;
 use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{FuseStats, LoopClosure};
-use capsule_slam_framework::{Context, Fuser, Iso3, MapStats, ModelSet, ModelView, Plugin, StageError, SurfelSet, register};
+use capsule_slam_framework::{Context, Fuser, Iso3, MapStats, ModelSet, ModelView, Plugin, StageError, Surfel, SurfelSet, register};
+use rayon::prelude::*;
 
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
@@ -62,6 +64,23 @@ impl SurfelGpu {
         self.map.gpu().name()
     }
 
+    /// Warps the map on the host (download, `d`, then `then`, upload) and recounts it: a
+    /// deformation's influences need a k-d tree, and a warp is one pass over the map.
+    fn rewrite(&mut self, d: &Deformation, then: impl FnOnce(&mut [Surfel], &SurfelParams)) -> Result<(), StageError> {
+        let mut surfels = self.map.download()?;
+        let warper = d.warper();
+        surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        then(&mut surfels, &self.params);
+        self.map.upload(&surfels)?;
+        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
+        self.stats = MapStats {
+            total: surfels.len(),
+            active: surfels.iter().filter(|s| s.is_active(self.now, dt)).count(),
+            stable: surfels.iter().filter(|s| s.confidence >= stable).count(),
+        };
+        Ok(())
+    }
+
     fn phase(&self, t_world_cam: &Iso3, now: u32, set: ModelSet) -> Phase {
         Phase { t_cam_world: t_world_cam.inverse(), now, set, params: self.params.clone() }
     }
@@ -99,23 +118,18 @@ impl Fuser for SurfelGpu {
 
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {
         let clock = std::time::Instant::now();
-        let mut surfels = self.map.download()?;
-        let warper = closure.deformation.warper();
-        {
-            use rayon::prelude::*;
-            surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
-        }
         let now = (ctx.frame_index as u32).max(self.now);
-        let reactivated = reactivate(&mut surfels, &closure.t_world_cam, ctx.rig.camera(), now, &self.params);
-        self.map.upload(&surfels)?;
-        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
-        self.stats = MapStats {
-            total: surfels.len(),
-            active: surfels.iter().filter(|s| s.is_active(self.now, dt)).count(),
-            stable: surfels.iter().filter(|s| s.confidence >= stable).count(),
-        };
+        let mut reactivated = 0;
+        self.rewrite(&closure.deformation, |surfels, params| reactivated = reactivate(surfels, &closure.t_world_cam, ctx.rig.camera(), now, params))?;
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         ctx.count("surfels_reactivated", reactivated as f64);
+        Ok(())
+    }
+
+    fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
+        let clock = std::time::Instant::now();
+        self.rewrite(deformation, |_, _| {})?;
+        ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }
 

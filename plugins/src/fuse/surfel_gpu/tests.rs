@@ -178,3 +178,48 @@ fn a_camera_of_another_size_is_an_error_not_a_crash() {
     let err = g.predict(&Iso3::identity(), ModelSet::Active, &mut Context::new(0, &big, None, &mut r)).unwrap_err().to_string();
     assert!(err.contains("64×48"), "{err}");
 }
+
+#[test]
+fn a_trackers_warp_moves_both_maps_alike_and_nothing_else() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("a_trackers_warp_moves_both_maps_alike_and_nothing_else").is_none() {
+        return;
+    }
+    let ph = phantom(2, 20, 0.0);
+    let (mut g, mut c) = builders(&ph, None, &gpu);
+    fuse_both(&ph, &mut g, &mut c, 20);
+    // A smooth, non-rigid warp: nodes on a 3 × 3 × 3 grid, each pushed along z by up to 1 mm
+    // with x, as a wave would push the wall.
+    let nodes = (0..27)
+        .map(|i| {
+            let p = Point3::new(f64::from(i % 3) * 0.02 - 0.02, f64::from((i / 3) % 3) * 0.02 - 0.02, f64::from(i / 9) * 0.02);
+            let mut n = DeformationNode::identity(p, 0);
+            n.translation_m = Vector3::new(0.0, 0.0, 0.0005 * (1.0 + p.x / 0.02));
+            n
+        })
+        .collect();
+    let warp = Deformation::new(nodes, 4, Window::All);
+    let rig = rig(&ph);
+    let mut r = StageReport::default();
+    let (before, old) = (c.stats(), c.snapshot().unwrap().surfels);
+    // The same frames as the closure test: both maps agree surfel for surfel before the warp
+    // (a different frame count can flip one association that sits on a gate).
+    assert!(agreement(&g.snapshot().unwrap().surfels, &old) > 0.999);
+    g.warp(&warp, &mut Context::new(20, &rig, None, &mut r)).unwrap();
+    c.warp(&warp, &mut Context::new(20, &rig, None, &mut r)).unwrap();
+    let (sg, sc) = (g.snapshot().unwrap().surfels, c.snapshot().unwrap().surfels);
+    assert!(agreement(&sg, &sc) > 0.999, "the GPU and the CPU map moved alike: {}", agreement(&sg, &sc));
+    assert_eq!(c.stats(), before, "a warp adds, removes and reactivates nothing");
+    assert_eq!(g.stats(), before);
+    // Every surfel moved where the deformation puts it (the snapshot is sorted by position, so
+    // compare the sorted warped old map).
+    let mut expected = old.clone();
+    let warper = warp.warper();
+    expected.iter_mut().for_each(|s| warper.warp_surfel(s));
+    let expected = capsule_slam_framework::SurfelSet::new(expected).surfels;
+    let moved = sc.iter().zip(&expected).filter(|(a, b)| (a.position_m - b.position_m).norm() < 1e-7).count();
+    assert_eq!(moved, sc.len());
+    let mean_dz = sc.iter().map(|s| f64::from(s.position_m.z)).sum::<f64>() / sc.len() as f64
+        - old.iter().map(|s| f64::from(s.position_m.z)).sum::<f64>() / old.len() as f64;
+    assert!(mean_dz > 1e-4, "the map moved along z: {mean_dz}");
+}

@@ -281,6 +281,7 @@ impl IcpRgb {
             residual_rms: fin.icp_rms(),
             covariance: fin.a.full().try_inverse(),
             iterations: total_iters as usize,
+            warp: None,
         };
         Ok((result, initial))
     }
