@@ -167,6 +167,17 @@ fn a_trackers_warp_moves_the_map_before_fusion_and_a_fuser_without_warp_says_so(
     let counters: Vec<serde_json::Value> =
         std::fs::read_to_string(tmp.path().join("warped/counters.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(counters.iter().filter(|c| c.get("surfel-cpu.ms_warp").is_some()).count(), 5, "a warp on every frame after the first");
+    // frames.csv gives each frame's warp: mean and max node displacement, mm.
+    let csv = std::fs::read_to_string(tmp.path().join("warped/frames.csv")).unwrap();
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let (mean, max) = (col("warp_mean_mm"), col("warp_max_mm"));
+    for (i, line) in csv.lines().skip(1).enumerate() {
+        let f: Vec<&str> = line.split(',').collect();
+        assert_eq!(f.len(), header.len(), "{line}");
+        let expect = if i == 0 { "" } else { "0.1000" };
+        assert_eq!((f[mean], f[max]), (expect, expect), "frame {i}");
+    }
     let mean_z = |map: &capsule_slam_framework::SurfelSet, t0: u32| {
         let z: Vec<f64> = map.surfels.iter().filter(|s| s.t0 == t0).map(|s| f64::from(s.position_m.z)).collect();
         assert!(!z.is_empty(), "no surfel created at frame {t0}");

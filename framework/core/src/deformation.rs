@@ -198,6 +198,16 @@ impl Deformation {
         self.warp_normal_with(n, &infl)
     }
 
+    /// How far the nodes move (a node's own position moves by its translation): mean and max,
+    /// metres; zeros without nodes.
+    pub fn node_displacement_m(&self) -> (f64, f64) {
+        let d: Vec<f64> = self.nodes.iter().map(|n| n.translation_m.norm()).collect();
+        if d.is_empty() {
+            return (0.0, 0.0);
+        }
+        (d.iter().sum::<f64>() / d.len() as f64, d.iter().fold(0.0, |m: f64, v| m.max(*v)))
+    }
+
     /// A warper for many surfels: it knows which windows hold only undeformed nodes (the
     /// frozen old map) and leaves their surfels as they are without searching the nodes.
     pub fn warper(&self) -> Warper<'_> {

@@ -116,6 +116,10 @@ pub struct FrameRow {
     pub loop_closure: bool,
     /// AbsRel of an estimated depth against the input's depth.
     pub depth_abs_rel: Option<f64>,
+    /// Tracker Gauss-Newton iterations.
+    pub tracker_iterations: usize,
+    /// The tracker's warp of the map: mean and max node displacement, millimetres.
+    pub warp_mm: Option<(f64, f64)>,
     /// Every counter the stages reported, keyed `plugin.counter`.
     pub counters: BTreeMap<String, f64>,
 }
@@ -141,6 +145,8 @@ pub fn frame_row(r: &FrameRecord) -> FrameRow {
         tracker_residual: r.residual_rms,
         loop_closure: r.loop_closed,
         depth_abs_rel: r.depth_abs_rel,
+        tracker_iterations: r.tracker_iterations,
+        warp_mm: r.warp_m.map(|(mean, max)| (mean * 1e3, max * 1e3)),
         counters: counters_of(r),
     }
 }

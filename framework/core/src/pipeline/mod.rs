@@ -245,6 +245,8 @@ impl Pipeline {
         rec.status = tr.status;
         rec.inliers = tr.inliers;
         rec.residual_rms = tr.residual_rms;
+        rec.tracker_iterations = tr.iterations;
+        rec.warp_m = tr.warp.as_ref().map(|w| w.node_displacement_m());
         Ok(tr)
     }
 

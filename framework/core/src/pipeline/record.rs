@@ -61,6 +61,11 @@ pub struct FrameRecord {
     pub inliers: usize,
     /// Tracker RMS residual.
     pub residual_rms: f64,
+    /// Tracker Gauss-Newton iterations.
+    pub tracker_iterations: usize,
+    /// The tracker's warp of the map, when it returned one: mean and max node displacement,
+    /// metres.
+    pub warp_m: Option<(f64, f64)>,
     /// Whether a loop closure was applied at this frame.
     pub loop_closed: bool,
     /// AbsRel of an estimated depth against the input's own depth (the phantom's ground
@@ -83,6 +88,8 @@ impl FrameRecord {
             fuse: FuseStats::default(),
             inliers: 0,
             residual_rms: 0.0,
+            tracker_iterations: 0,
+            warp_m: None,
             loop_closed: false,
             depth_abs_rel: None,
             reports: BTreeMap::new(),
