@@ -2,6 +2,8 @@
 //! with that error after writing what exists: the trajectory and `frames.csv` up to frame
 //! N − 1, the map and a `summary.json` whose status names the failure.
 
+use std::borrow::Cow;
+
 use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live};
 use capsule_slam_framework::error::PipelineError;
 use capsule_slam_framework::frame::DepthSource;
@@ -137,9 +139,9 @@ fn evaluate_run(
 }
 
 /// The true surface at a frame, for the live surface error.
-enum LiveTruth {
-    /// The surface at that frame.
-    At(SurfelSet),
+enum LiveTruth<'a> {
+    /// The surface at that frame (a rigid input's rest shape, borrowed).
+    At(Cow<'a, SurfelSet>),
     /// The input has no ground-truth surface.
     None,
     /// A deforming input without the surface at that frame: why the metric is off.
@@ -148,12 +150,12 @@ enum LiveTruth {
 
 /// The true surface at frame `last`: `gt_surface_<last>.ply` of a deforming phantom (one with
 /// per-frame surfaces), the rest shape of a rigid one.
-fn live_truth(dataset: &Dataset, rest: Option<&SurfelSet>, last: usize) -> Result<LiveTruth, PipelineError> {
+fn live_truth<'a>(dataset: &Dataset, rest: Option<&'a SurfelSet>, last: usize) -> Result<LiveTruth<'a>, PipelineError> {
     let Some(rest) = rest else { return Ok(LiveTruth::None) };
     let dir = dataset.dir();
     let at = dir.join(format!("gt_surface_{last:06}.ply"));
     if at.exists() {
-        return Ok(LiveTruth::At(ply::read_surfels(&at)?));
+        return Ok(LiveTruth::At(Cow::Owned(ply::read_surfels(&at)?)));
     }
     let deforming = std::fs::read_dir(dir)
         .map_err(|e| capsule_slam_framework::LoadError::io(dir, e))?
@@ -166,7 +168,7 @@ fn live_truth(dataset: &Dataset, rest: Option<&SurfelSet>, last: usize) -> Resul
             at.display()
         ))
     } else {
-        LiveTruth::At(rest.clone())
+        LiveTruth::At(Cow::Borrowed(rest))
     })
 }
 
