@@ -5,7 +5,7 @@
 
 use capsule_slam_framework::Surfel;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, SurfelTime, Window};
-use capsule_slam_plugins::close::deformation::graph::{Constraint, Edges, Graph, GraphWeights};
+use capsule_slam_plugins::common::ed_graph::{Constraint, Edges, Graph, GraphWeights};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
 

@@ -2,6 +2,7 @@
 //! depth smoothing, intensity images and image pyramids. Stages never call each other; they
 //! call these functions.
 
+pub mod ed_graph;
 pub mod maps;
 pub mod pyramid;
 pub mod sparse_llt;

@@ -2,3 +2,4 @@
 
 pub mod ground_truth;
 pub mod icp_rgb;
+pub mod nonrigid;

@@ -7,7 +7,7 @@ use capsule_slam_framework::deformation::SurfelTime;
 use capsule_slam_framework::frame::{DepthSource, Masks};
 use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus};
 
-use super::graph::Constraint;
+use crate::common::ed_graph::Constraint;
 use super::params::{DeformationParams, Reference};
 use crate::track::icp_rgb::{IcpRgb, IcpRgbParams, MotionModel, RgbReference};
 

@@ -21,7 +21,6 @@
 //! the new one that meets it are moved by their own nodes.
 
 pub mod detect;
-pub mod graph;
 mod params;
 
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, PoseWarp, SurfelTime, Window};
@@ -30,7 +29,7 @@ use capsule_slam_framework::stage::{LoopClosure, LoopInput};
 use capsule_slam_framework::{Context, Fuser, Iso3, LoopCloser, Plugin, StageError, Surfel, SurfelSet, register};
 
 use detect::{Registration, Sample, constraints, median_t0, register_models, samples};
-use graph::{Graph, GraphWeights};
+use crate::common::ed_graph::{Graph, GraphWeights};
 pub use params::{DeformationParams, Freeze, PoseWarpKind, Reference, WindowUnit};
 
 /// The local loop closer.
@@ -239,7 +238,5 @@ fn mean_displacement_m(a: &Iso3, b: &Iso3, samples: &[Sample]) -> f64 {
 
 register!(LoopCloser, DeformationCloser);
 
-#[cfg(test)]
-mod graph_tests;
 #[cfg(test)]
 mod tests;

@@ -3,7 +3,7 @@
 
 use capsule_slam_framework::deformation::SurfelTime;
 
-use super::graph::Edges;
+use crate::common::ed_graph::Edges;
 
 /// Which model stays where it is at a closure.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

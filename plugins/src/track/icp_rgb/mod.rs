@@ -25,11 +25,11 @@
 //! frame fills in (ElasticFusion's fill-in). Tracking is declared lost when too few pixels
 //! agree, the residual is too large, or the solution jumps; the pipeline then skips fusion.
 
-mod frames;
+pub(crate) mod frames;
 mod gn;
 mod terms;
 
-pub use terms::{icp_jacobian, icp_residual, rgb_jacobian};
+pub use terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
 
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::registry::BuildEnv;
@@ -231,11 +231,43 @@ impl IcpRgb {
         initial: bool,
         ctx: &mut Context,
     ) -> Result<(TrackResult, Option<f64>), StageError> {
+        let live = self.live_pyramid(frame, ctx);
+        self.register_pyramid(live, frame.depth_source, model, t_world_prev, initial, ctx)
+    }
+
+    /// The live frame's pyramid as this tracker prepares it (3 levels, finest first).
+    pub(crate) fn live_pyramid(&self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {
+        let clock = std::time::Instant::now();
+        let live = frames::live(frame, ctx.rig.camera(), LEVELS, &self.prep());
+        ctx.count("ms_live_pyramid", clock.elapsed().as_secs_f64() * 1e3);
+        live
+    }
+
+    /// Replaces the last relative motion (previous camera → current camera), the
+    /// constant-velocity prior of the next frame, when a caller refined the pose.
+    pub(crate) fn set_last_motion(&mut self, motion: Iso3) {
+        if self.velocity.is_some() {
+            self.velocity = Some(motion);
+        }
+    }
+
+    /// The previous tracked live frame's finest level (the photometric reference).
+    pub(crate) fn previous_level0(&self) -> Option<&Level> {
+        self.previous.as_ref().and_then(|p| p.first())
+    }
+
+    /// [`IcpRgb::register`] on a prepared live pyramid ([`IcpRgb::live_pyramid`]).
+    pub(crate) fn register_pyramid(
+        &mut self,
+        live: Vec<Level>,
+        depth_source: DepthSource,
+        model: Option<&ModelView>,
+        t_world_prev: &Iso3,
+        initial: bool,
+        ctx: &mut Context,
+    ) -> Result<(TrackResult, Option<f64>), StageError> {
         let cam = ctx.rig.camera();
         let prep = self.prep();
-        let clock = std::time::Instant::now();
-        let live = frames::live(frame, cam, LEVELS, &prep);
-        ctx.count("ms_live_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let prior = match self.params.motion_model {
             MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
             MotionModel::None => Iso3::identity(),
@@ -254,7 +286,7 @@ impl IcpRgb {
             (RgbReference::PreviousFrame, Some(p)) => p,
             _ => &reference,
         };
-        let noise = self.depth_noise(frame.depth_source);
+        let noise = self.depth_noise(depth_source);
         let w = self.weights(&noise);
         let initial = initial.then(|| accumulate(&live[0], &reference[0], &photo[0], &prior, &w, self.params.stride_l0 as usize).icp_rms());
         let (t, total_iters, fin) = self.coarse_to_fine(&live, &reference, photo, prior, &w);

@@ -19,6 +19,9 @@ use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
 use crate::geometry::Iso3;
 use crate::map::Surfel;
 
+mod grid;
+use grid::NodeGrid;
+
 /// One graph node: position g, affine 3×3 R and translation t, and its time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DeformationNode {
@@ -107,6 +110,10 @@ pub struct Deformation {
     pub surfel_time: SurfelTime,
     /// How camera poses follow ([`Deformation::warp_pose`]).
     pub pose_warp: PoseWarp,
+    /// Nodes farther than this from a point do not influence it, and a point with none this
+    /// near is not moved (metres; `None`: no limit, Sumner). A tracker's warp of the surface in
+    /// view sets it, so the rest of the map stays where it is.
+    pub reach_m: Option<f64>,
 }
 
 impl Deformation {
@@ -114,12 +121,17 @@ impl Deformation {
     /// the `window`, surfels timed by creation (ElasticFusion; see [`Deformation::timed_by`]).
     pub fn new(mut nodes: Vec<DeformationNode>, k: usize, window: Window) -> Self {
         nodes.sort_by_key(|n| n.time);
-        Self { nodes, k, window, surfel_time: SurfelTime::Created, pose_warp: PoseWarp::Position }
+        Self { nodes, k, window, surfel_time: SurfelTime::Created, pose_warp: PoseWarp::Position, reach_m: None }
     }
 
     /// The same deformation with poses warped by `pose_warp`.
     pub fn poses_by(self, pose_warp: PoseWarp) -> Self {
         Self { pose_warp, ..self }
+    }
+
+    /// The same deformation limited to points within `reach_m` of a node.
+    pub fn within(self, reach_m: f64) -> Self {
+        Self { reach_m: Some(reach_m), ..self }
     }
 
     /// The same deformation with surfels timed by `surfel_time`.
@@ -156,13 +168,21 @@ impl Deformation {
     /// the distance to the (k+1)-th nearest candidate. With k or fewer candidates, d_max is
     /// 1.01 × the farthest one's distance.
     pub fn influences(&self, p: &Point3<f64>, time: u32) -> Vec<(usize, f64)> {
+        self.influences_among(p, self.candidates(time))
+    }
+
+    /// [`Deformation::influences`] among the given candidate nodes (in any order; ties are
+    /// broken by index), those beyond [`Deformation::reach_m`] left out. With a reach and fewer
+    /// than k + 1 nodes in it, d_max is the reach.
+    pub fn influences_among(&self, p: &Point3<f64>, candidates: impl Iterator<Item = usize>) -> Vec<(usize, f64)> {
         let k = self.k.max(1);
+        let reach2 = self.reach_m.map_or(f64::INFINITY, |r| r * r);
         // The k + 1 nearest candidates by squared distance (then index), kept sorted in a short
         // list: one pass over the window, no sort of it.
         let mut d: Vec<(usize, f64)> = Vec::with_capacity(k + 2);
-        for i in self.candidates(time) {
+        for i in candidates {
             let di = (p - self.nodes[i].position_m).norm_squared();
-            if d.len() > k && di >= d[k].1 {
+            if di > reach2 || (d.len() > k && di >= d[k].1) {
                 continue;
             }
             let at = d.partition_point(|x| x.1 < di || (x.1 == di && x.0 < i));
@@ -170,9 +190,10 @@ impl Deformation {
             d.truncate(k + 1);
         }
         d.iter_mut().for_each(|x| x.1 = x.1.sqrt());
-        let d_max = match d.get(k) {
-            Some(&(_, dk)) => dk,
-            None => d.last().map_or(0.0, |&(_, dl)| 1.01 * dl),
+        let d_max = match (d.get(k), self.reach_m) {
+            (Some(&(_, dk)), _) => dk,
+            (None, Some(reach)) => reach,
+            (None, None) => d.last().map_or(0.0, |&(_, dl)| 1.01 * dl),
         };
         d.truncate(k);
         let mut w: Vec<(usize, f64)> = d.iter().map(|&(i, di)| (i, if d_max > 0.0 { (1.0 - di / d_max).max(0.0).powi(2) } else { 1.0 })).collect();
@@ -218,7 +239,11 @@ impl Deformation {
             count += u32::from(n.rotation != Matrix3::identity() || n.translation_m != Vector3::zeros());
             moving_before.push(count);
         }
-        Warper { deformation: self, moving_before }
+        let grid = self.reach_m.filter(|r| *r > 0.0 && r.is_finite()).map(|r| {
+            let positions: Vec<Point3<f64>> = self.nodes.iter().map(|n| n.position_m).collect();
+            NodeGrid::new(&positions, r)
+        });
+        Warper { deformation: self, moving_before, grid }
     }
 
     /// Warps a surfel's position and normal in place (timed by [`Deformation::surfel_time`]).
@@ -287,17 +312,31 @@ pub struct Warper<'a> {
     deformation: &'a Deformation,
     /// `moving_before[i]`: nodes before node i that are not the identity.
     moving_before: Vec<u32>,
+    /// The nodes by cell, with a reach.
+    grid: Option<NodeGrid>,
 }
 
 impl Warper<'_> {
     /// Warps a surfel's position and normal in place; the same result as
     /// [`Deformation::warp_surfel`].
     pub fn warp_surfel(&self, s: &mut Surfel) {
-        let r = self.deformation.candidates(self.deformation.surfel_time.of(s));
+        let d = self.deformation;
+        let r = d.candidates(d.surfel_time.of(s));
         if self.moving_before[r.end] == self.moving_before[r.start] {
             return;
         }
-        self.deformation.warp_surfel(s);
+        let Some(grid) = &self.grid else { return d.warp_surfel(s) };
+        let p = s.position_m.cast::<f64>();
+        let near = grid.near(&p);
+        if near.is_empty() {
+            return;
+        }
+        let infl = d.influences_among(&p, near.into_iter().filter(|i| r.contains(i)));
+        if infl.is_empty() {
+            return;
+        }
+        s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
+        s.position_m = d.warp_with(&p, &infl).cast();
     }
 }
 
@@ -320,132 +359,4 @@ pub fn orthonormalise(m: &Matrix3<f64>) -> Rotation3<f64> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use proptest::prelude::*;
-
-    fn grid(k: usize) -> Deformation {
-        let mut nodes = Vec::new();
-        for i in 0..4 {
-            for j in 0..4 {
-                nodes.push(DeformationNode::identity(Point3::new(i as f64 * 0.01, j as f64 * 0.01, 0.0), 0));
-            }
-        }
-        Deformation::new(nodes, k, Window::All)
-    }
-
-    proptest! {
-        #[test]
-        fn identity_deformation_is_a_no_op(x in -0.01f64..0.05, y in -0.01f64..0.05, z in -0.01f64..0.01) {
-            let d = grid(4);
-            let p = Point3::new(x, y, z);
-            prop_assert!((d.warp_point(&p, 0) - p).norm() < 1e-12);
-            let n = Vector3::new(0.3, -0.2, 0.9).normalize();
-            prop_assert!((d.warp_normal(&p, &n, 0) - n).norm() < 1e-12);
-        }
-
-        #[test]
-        fn weights_sum_to_one(x in -0.01f64..0.05, y in -0.01f64..0.05) {
-            let w = grid(4).influences(&Point3::new(x, y, 0.003), 0);
-            prop_assert_eq!(w.len(), 4);
-            prop_assert!((w.iter().map(|x| x.1).sum::<f64>() - 1.0).abs() < 1e-12);
-        }
-    }
-
-    #[test]
-    fn rigid_deformation_moves_points_and_poses_rigidly() {
-        let rot = Rotation3::from_euler_angles(0.1, -0.05, 0.2);
-        let shift = Vector3::new(0.002, -0.001, 0.003);
-        let mut d = grid(4);
-        // A rigid motion x ↦ R x + s expressed per node: R (v − g) + g + t with t = R g + s − g.
-        for n in &mut d.nodes {
-            n.rotation = *rot.matrix();
-            n.translation_m = rot * n.position_m.coords + shift - n.position_m.coords;
-        }
-        let p = Point3::new(0.013, 0.021, 0.002);
-        assert!((d.warp_point(&p, 0) - (rot * p + shift)).norm() < 1e-12);
-        let n = Vector3::new(0.0, 0.6, 0.8);
-        assert!((d.warp_normal(&p, &n, 0) - rot * n).norm() < 1e-12);
-        let pose = Iso3::translation(0.01, 0.01, -0.02);
-        for d in [d.clone(), d.poses_by(PoseWarp::View { depth_m: 0.02 })] {
-            let warped = d.warp_pose(&pose, 0);
-            assert!((warped.rotation.to_rotation_matrix().matrix() - rot.matrix()).norm() < 1e-9);
-            assert!((warped.translation.vector - (rot * pose.translation.vector + shift)).norm() < 1e-12);
-        }
-    }
-
-    #[test]
-    fn a_time_window_keeps_crossing_surfaces_apart() {
-        // Two layers of nodes at the same place, an old one (t0 0..16) that stays and a new one
-        // (t0 100..116) that moves by 2 mm: with a window of 16, a point of time 3 or 120 follows
-        // its own layer only.
-        let old = grid(4).nodes;
-        let new: Vec<DeformationNode> =
-            old.iter().enumerate().map(|(i, n)| DeformationNode { time: 100 + i as u32, translation_m: Vector3::new(0.0, 0.0, 0.002), ..*n }).collect();
-        let old: Vec<DeformationNode> = old.iter().enumerate().map(|(i, n)| DeformationNode { time: i as u32, ..*n }).collect();
-        let p = Point3::new(0.012, 0.017, 0.0);
-        let windowed = Deformation::new([new.clone(), old.clone()].concat(), 4, Window::Nodes(16));
-        assert!((windowed.warp_point(&p, 3) - p).norm() < 1e-12, "an old point stays");
-        assert!((windowed.warp_point(&p, 120) - (p + Vector3::new(0.0, 0.0, 0.002))).norm() < 1e-12, "a new point moves");
-        let spatial = Deformation::new([new.clone(), old.clone()].concat(), 4, Window::All);
-        let mixed = spatial.warp_point(&p, 3).z;
-        assert!(mixed > 0.0 && mixed < 0.002, "without a window the layers mix: {mixed}");
-        // The window is the m nodes up to the nearest in time, completed forward.
-        assert_eq!(windowed.candidates(0), 0..16);
-        assert_eq!(windowed.candidates(108), 9..25);
-        assert_eq!(windowed.candidates(200), 16..32);
-        assert_eq!(windowed.candidates(20), 0..16);
-        assert_eq!(windowed.candidates(57), 0..16, "node 15 (t0 15) is nearer than node 16 (t0 100)");
-        assert_eq!(windowed.candidates(58), 1..17, "node 16 is nearer");
-        // A window of frames: the same separation, whatever the node counts.
-        let framed = Deformation::new([new, old].concat(), 4, Window::Frames(30));
-        assert!((framed.warp_point(&p, 3) - p).norm() < 1e-12, "an old point stays");
-        assert!((framed.warp_point(&p, 120) - (p + Vector3::new(0.0, 0.0, 0.002))).norm() < 1e-12, "a new point moves");
-        assert_eq!(framed.candidates(10), 0..16);
-        assert_eq!(framed.candidates(140), 26..32, "frames 110 to 170 hold the nodes of times 110..115");
-        assert_eq!(framed.candidates(60), 12..17, "no node within 30 frames: the k + 1 nearest in time (up to time 100)");
-    }
-
-    #[test]
-    fn a_surfel_is_warped_by_the_time_the_deformation_names() {
-        // Old nodes (time 0..16) stay, new ones (100..116) move by 2 mm; a surfel created at 5
-        // and last seen at 110 moves with the new layer when timed by last sighting.
-        let old = grid(4).nodes;
-        let new: Vec<DeformationNode> =
-            old.iter().enumerate().map(|(i, n)| DeformationNode { time: 100 + i as u32, translation_m: Vector3::new(0.0, 0.0, 0.002), ..*n }).collect();
-        let old: Vec<DeformationNode> = old.iter().enumerate().map(|(i, n)| DeformationNode { time: i as u32, ..*n }).collect();
-        let d = Deformation::new([new, old].concat(), 4, Window::Frames(30));
-        let s = Surfel {
-            position_m: Point3::new(0.012, 0.017, 0.0),
-            normal: Vector3::z(),
-            colour: [0; 3],
-            confidence: 10.0,
-            radius_m: 0.001,
-            t0: 5,
-            t: 110,
-            albedo: 0.0,
-        };
-        let mut created = s;
-        d.clone().warp_surfel(&mut created);
-        assert_eq!(created.position_m, s.position_m, "timed by creation it stays");
-        let mut skipped = s;
-        d.warper().warp_surfel(&mut skipped);
-        assert_eq!(skipped, created, "the warper skips the window of undeformed old nodes");
-        let mut seen = s;
-        let d = d.timed_by(SurfelTime::LastSeen);
-        let mut fast = s;
-        d.warper().warp_surfel(&mut fast);
-        d.warp_surfel(&mut seen);
-        assert_eq!(fast, seen);
-        assert!((seen.position_m.z - 0.002).abs() < 1e-7, "timed by last sighting it moves: {}", seen.position_m);
-        assert!((seen.normal.norm() - 1.0).abs() < 1e-6);
-    }
-
-    #[test]
-    fn orthonormalise_returns_a_rotation() {
-        let m = Matrix3::new(1.1, 0.1, 0.0, -0.05, 0.9, 0.02, 0.0, 0.03, 1.2);
-        let r = orthonormalise(&m);
-        assert!((r.matrix() * r.matrix().transpose() - Matrix3::identity()).norm() < 1e-12);
-        assert!((r.matrix().determinant() - 1.0).abs() < 1e-12);
-    }
-}
+mod tests;

@@ -2,7 +2,7 @@ use capsule_slam_framework::Iso3;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
-use super::graph::{Constraint, Edges, Graph, GraphWeights, UNKNOWNS, time_neighbours};
+use super::{Constraint, Edges, Graph, GraphWeights, UNKNOWNS, time_neighbours};
 
 /// A 40 × 40 mm sheet of points at z = 30 mm sampled every `step_m`, with times increasing
 /// along x (as a capsule sweeping it would see them).

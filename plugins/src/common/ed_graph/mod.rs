@@ -270,7 +270,7 @@ impl Graph {
     /// The sparsity pattern of JᵀJ (every pair of unknowns that share a residual, plus the
     /// diagonal) and where each product of a row's Jacobian entries lands in it, in visiting
     /// order: the rows' structure never changes, so the searches are done once per graph.
-    pub(super) fn normal_pattern(&self, w: &GraphWeights, n: usize) -> Result<NormalPattern, StageError> {
+    pub(crate) fn normal_pattern(&self, w: &GraphWeights, n: usize) -> Result<NormalPattern, StageError> {
         let mut pairs: Vec<(usize, usize)> = (0..n).map(|k| (k, k)).collect();
         self.visit(w, |_, row| {
             for &(a, _) in row {
@@ -306,7 +306,7 @@ impl Graph {
     }
 
     /// Fills JᵀJ (lower triangle) into the pattern's values and returns the gradient Jᵀr.
-    pub(super) fn assemble(&self, w: &GraphWeights, normal: &mut NormalPattern) -> Vec<f64> {
+    pub(crate) fn assemble(&self, w: &GraphWeights, normal: &mut NormalPattern) -> Vec<f64> {
         let n = normal.diag.len();
         let vals = normal.a.val_mut();
         vals.iter_mut().for_each(|v| *v = 0.0);
@@ -351,8 +351,8 @@ impl Graph {
 }
 
 /// The normal equations' sparsity pattern and where each Jacobian product lands in it.
-pub(super) struct NormalPattern {
-    pub(super) a: SparseColMat<usize, f64>,
+pub(crate) struct NormalPattern {
+    pub(crate) a: SparseColMat<usize, f64>,
     /// Value slot of each lower-triangle product, in [`Graph::visit`] order.
     slots: Vec<usize>,
     /// Value slot of each diagonal entry.
@@ -373,3 +373,6 @@ pub struct Solution {
 fn solver_error(e: impl std::fmt::Display) -> StageError {
     StageError::invalid_input(format!("deformation: sparse Cholesky failed: {e}"))
 }
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,250 @@
+//! `nonrigid`: the camera pose **and** a deformation of the active model, every frame — the
+//! non-rigid half of the paper's title (Sec. 3.4 applies embedded deformation at loop closures;
+//! this tracker applies it to the moving wall itself, as SurfelWarp and SuPer do; design digest:
+//! `shared/design/nonrigid.md`).
+//!
+//! Per frame:
+//! 1. a rigid start: `icp-rgb` (every option of it, under `[tracker.params.rigid]`) against the
+//!    prediction of the map, which the previous frames' warps keep at the wall's last shape;
+//!    its loss detection is this tracker's;
+//! 2. embedded-deformation nodes cover the predicted surface (`node_spacing_m`, `nodes.rs`); the
+//!    prediction's pixels on a grid are bound to their k nearest nodes within `reach_m`;
+//! 3. a joint Gauss-Newton solve of the camera and the nodes' affine increments (`solve.rs`):
+//!    point to plane + photometric against the live frame, the ED graph's rotation and
+//!    smoothness terms (shared with the `deformation` loop closer), a rest-shape prior that
+//!    gives motion common to every node to the camera, a per-frame step prior and a camera prior
+//!    toward the rigid start; faer's sparse Cholesky, its analysis kept while the pattern holds;
+//! 4. a fallback to the rigid pose, without a warp, when too few model points find the live
+//!    wall, the solver fails, or a node would jump (each named in a warning).
+//!
+//! The warp goes out in [`TrackResult::warp`]: the pipeline applies it to the map (through the
+//! fuser) before fusion, so the frame fuses into the wall as it is now. Surfels beyond
+//! `reach_m` of every solved node stay where they are.
+
+mod energy;
+mod nodes;
+mod params;
+mod points;
+mod solve;
+mod system;
+#[cfg(test)]
+mod tests;
+
+pub use params::{CameraMode, NonrigidParams};
+
+use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
+use capsule_slam_framework::frame::DepthSource;
+use capsule_slam_framework::registry::BuildEnv;
+use capsule_slam_framework::{Context, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, TrackStatus, Tracker, register};
+
+use crate::common::ed_graph::{Edges, Graph};
+use crate::track::icp_rgb::IcpRgb;
+use crate::track::icp_rgb::frames::Level;
+
+use nodes::Nodes;
+use points::ModelPoint;
+use solve::{Cache, Problem};
+
+/// The non-rigid tracker.
+pub struct Nonrigid {
+    params: NonrigidParams,
+    rigid: IcpRgb,
+    nodes: Nodes,
+    cache: Cache,
+}
+
+impl Plugin for Nonrigid {
+    const NAME: &'static str = "nonrigid";
+    const SUMMARY: &'static str = "camera pose and an embedded deformation of the active model per frame: rigid icp-rgb start, then joint point-to-plane + photometric + ARAP + rest-prior Gauss-Newton (faer sparse Cholesky)";
+    type Params = NonrigidParams;
+
+    fn build(params: NonrigidParams, env: &BuildEnv) -> Result<Self, StageError> {
+        params.check()?;
+        let rigid = <IcpRgb as Plugin>::build(params.rigid.clone(), env)?;
+        Ok(Self { nodes: Nodes::new(params.reach_m), rigid, params, cache: Cache::default() })
+    }
+}
+
+impl Nonrigid {
+    /// A tracker with no history.
+    pub fn new(params: NonrigidParams) -> Result<Self, StageError> {
+        params.check()?;
+        Ok(Self { nodes: Nodes::new(params.reach_m), rigid: IcpRgb::new(params.rigid.clone()), params, cache: Cache::default() })
+    }
+
+    /// The nodes' live and reference positions (for tests and outputs).
+    pub fn node_positions(&self) -> Vec<(nalgebra::Point3<f64>, nalgebra::Point3<f64>)> {
+        self.nodes.nodes.iter().map(|n| (n.position_m, n.reference_m)).collect()
+    }
+}
+
+impl Tracker for Nonrigid {
+    fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
+        let live = self.rigid.live_pyramid(frame, ctx);
+        let level = self.params.level.min(live.len() as u32 - 1) as usize;
+        let level = live[level].clone();
+        let previous_gray = self.rigid.previous_level0().map(|l| l.gray.clone());
+        let (rigid, _) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?;
+        let Some(model) = model else { return Ok(rigid) };
+        if rigid.status == TrackStatus::Lost {
+            return Ok(rigid);
+        }
+        if frame.depth_source == DepthSource::Estimated && !self.params.warp_estimated_depth {
+            return Ok(rigid);
+        }
+        let clock = std::time::Instant::now();
+        let cam = ctx.rig.camera().clone();
+        let points = points::sample(model, &cam, previous_gray.as_ref(), self.params.point_stride_px as usize, self.params.max_incidence_rad);
+        let now = ctx.frame_index as u32;
+        let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, now, self.params.max_nodes as usize);
+        if refused > 0 {
+            ctx.warn(format!("nonrigid: {refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
+        }
+        ctx.count("nonrigid_nodes_added", added as f64);
+        let outcome = self.solve(&points, &level, &rigid, now, ctx);
+        ctx.count("ms_nonrigid", clock.elapsed().as_secs_f64() * 1e3);
+        match outcome {
+            Ok(Some(result)) => {
+                if self.params.camera == CameraMode::Joint {
+                    self.rigid.set_last_motion(t_world_prev.inverse() * result.t_world_cam);
+                }
+                Ok(result)
+            }
+            Ok(None) => Ok(rigid.clone()),
+            Err(e) => {
+                ctx.warn(format!("nonrigid: rigid pose kept, no warp: {e}"));
+                ctx.count("nonrigid_fallback", 1.0);
+                Ok(rigid)
+            }
+        }
+    }
+}
+
+/// What a fit did.
+pub(crate) enum Fit {
+    /// The warp and the pose.
+    Solved {
+        /// The pose.
+        t_world_cam: Iso3,
+        /// The warp of the surface near the solved nodes.
+        warp: Deformation,
+        /// Solver figures.
+        outcome: solve::Outcome,
+        /// Nodes solved.
+        nodes: usize,
+        /// Model points bound to them.
+        points: usize,
+    },
+    /// Why the rigid pose stands.
+    Fallback(String),
+}
+
+impl Nonrigid {
+    /// The joint solve from the rigid result, with the counters and fallback warnings.
+    fn solve(&mut self, points: &[ModelPoint], level: &Level, rigid: &TrackResult, now: u32, ctx: &mut Context) -> Result<Option<TrackResult>, StageError> {
+        match self.fit(points, level, &rigid.t_world_cam, now)? {
+            Fit::Fallback(why) => {
+                ctx.warn(format!("nonrigid: rigid pose kept, no warp: {why}"));
+                ctx.count("nonrigid_fallback", 1.0);
+                Ok(None)
+            }
+            Fit::Solved { t_world_cam, warp, outcome, nodes, points } => {
+                ctx.count("nonrigid_nodes", nodes as f64);
+                ctx.count("nonrigid_points", points as f64);
+                ctx.count("nonrigid_iterations", outcome.iterations as f64);
+                ctx.count("nonrigid_analyses", outcome.analyses as f64);
+                Ok(Some(TrackResult {
+                    t_world_cam,
+                    status: TrackStatus::Tracked,
+                    inliers: outcome.inliers,
+                    residual_rms: outcome.icp_rms_m,
+                    covariance: rigid.covariance,
+                    iterations: rigid.iterations + outcome.iterations,
+                    warp: Some(warp),
+                }))
+            }
+        }
+    }
+
+    /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
+    /// the nodes near them; moves the nodes when it succeeds.
+    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3, now: u32) -> Result<Fit, StageError> {
+        let p = &self.params;
+        let reach = p.reach_m;
+        // Every node as a deformation (times 0, so the order is kept) to bind points.
+        let all = Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
+        let mut used = vec![0usize; all.nodes.len()];
+        for q in points {
+            for (i, _) in all.influences_among(&q.x_world_m, self.nodes.within(&q.x_world_m, reach).into_iter()) {
+                used[i] += 1;
+            }
+        }
+        let solve_ids: Vec<usize> = (0..used.len()).filter(|&i| used[i] >= p.min_points_per_node as usize).collect();
+        if solve_ids.is_empty() {
+            return Ok(Fit::Fallback("no node has enough model points".into()));
+        }
+        let mut index = vec![usize::MAX; all.nodes.len()];
+        for (s, &i) in solve_ids.iter().enumerate() {
+            index[i] = s;
+        }
+        let solve_nodes: Vec<DeformationNode> = solve_ids.iter().map(|&i| all.nodes[i]).collect();
+        let mut graph = Graph::new(Deformation::new(solve_nodes, p.k as usize, Window::All).within(reach), p.connectivity as usize, Edges::SpaceInWindow);
+        let normals: Vec<_> = solve_ids.iter().map(|&i| self.nodes.nodes[i].normal).collect();
+        let cos_edge = p.max_edge_angle_rad.cos();
+        for (j, nb) in graph.neighbours.iter_mut().enumerate() {
+            let g = graph.deformation.nodes[j].position_m;
+            let nodes = &graph.deformation.nodes;
+            nb.retain(|&n| (nodes[n].position_m - g).norm() <= p.max_edge_m && normals[j].dot(&normals[n]) >= cos_edge);
+        }
+        let bound: Vec<(&ModelPoint, Vec<(usize, f64)>)> = points
+            .iter()
+            .filter_map(|q| {
+                let near = self.nodes.within(&q.x_world_m, reach).into_iter().filter_map(|i| (index[i] != usize::MAX).then_some(index[i]));
+                let b = graph.deformation.influences_among(&q.x_world_m, near);
+                (!b.is_empty()).then_some((q, b))
+            })
+            .collect();
+        let references = solve_ids.iter().map(|&i| self.nodes.nodes[i].reference_m.coords).collect();
+        let mut problem = Problem { points: bound, graph, references, camera: p.camera == CameraMode::Joint };
+        let outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
+        let share = outcome.inliers as f64 / points.len().max(1) as f64;
+        let mut d = problem.graph.deformation;
+        if p.factor_common {
+            let weights: Vec<f64> = solve_ids.iter().map(|&i| used[i] as f64).collect();
+            factor_common(&mut d, &weights);
+        }
+        let (_, max_step) = d.node_displacement_m();
+        if share < p.min_point_share || !outcome.icp_rms_m.is_finite() {
+            return Ok(Fit::Fallback(format!("{:.0} % of the model points found the live wall (min_point_share {:.0} %)", 100.0 * share, 100.0 * p.min_point_share)));
+        }
+        if max_step > p.max_step_m {
+            return Ok(Fit::Fallback(format!("a node would move {:.2} mm in one frame (max_step_m {:.2} mm)", max_step * 1e3, p.max_step_m * 1e3)));
+        }
+        for (s, &i) in solve_ids.iter().enumerate() {
+            let (node, dn) = (&mut self.nodes.nodes[i], &d.nodes[s]);
+            node.position_m += dn.translation_m;
+            node.normal = d.warp_normal_with(&node.normal, &[(s, 1.0)]);
+            node.last_seen = now;
+        }
+        self.nodes.rebin();
+        Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome })
+    }
+}
+
+/// Removes from every node the rigid motion that best explains the nodes' displacements
+/// (weighted Kabsch; OpenCV dynafu's `factorCommon`): what moves every node alike is the
+/// camera's to explain, so the warp never carries the map along with a camera error.
+fn factor_common(d: &mut Deformation, weights: &[f64]) {
+    let from: Vec<nalgebra::Point3<f64>> = d.nodes.iter().map(|n| n.position_m).collect();
+    let to: Vec<nalgebra::Point3<f64>> = d.nodes.iter().map(|n| n.position_m + n.translation_m).collect();
+    let Some(g) = capsule_slam_framework::geometry::kabsch_weighted(&from, &to, weights) else { return };
+    let g_inv = g.inverse();
+    let r_inv = *g_inv.rotation.to_rotation_matrix().matrix();
+    for n in &mut d.nodes {
+        let moved = g_inv * (n.position_m + n.translation_m);
+        n.rotation = r_inv * n.rotation;
+        n.translation_m = moved - n.position_m;
+    }
+}
+
+register!(Tracker, Nonrigid);

@@ -1,0 +1,125 @@
+//! The tracker's embedded-deformation nodes: sampled on the surface the prediction shows, kept
+//! from frame to frame and moved with the wall.
+//!
+//! A node is added where a model point has no node within the spacing (Poisson-disk-like, in
+//! raster order, as SurfelWarp's candidate rule: `WarpFieldUpdater.cpp`); it keeps the position it
+//! had when it was created (its reference: the rest-shape prior pulls it back there, after
+//! DefSLAM's `EdgesReference`) and its live position, which each frame's warp moves.
+
+use std::collections::HashMap;
+
+use nalgebra::{Point3, Vector3};
+
+use super::points::ModelPoint;
+
+/// One node.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Node {
+    /// Where the wall under it is now, metres, world frame.
+    pub position_m: Point3<f64>,
+    /// Where it was created, metres, world frame.
+    pub reference_m: Point3<f64>,
+    /// Surface normal there, world frame.
+    pub normal: Vector3<f64>,
+    /// Frame that last saw it.
+    pub last_seen: u32,
+}
+
+/// The nodes and a grid over their live positions.
+#[derive(Debug, Clone, Default)]
+pub struct Nodes {
+    /// The nodes, in creation order.
+    pub nodes: Vec<Node>,
+    cells: HashMap<[i64; 3], Vec<usize>>,
+    cell_m: f64,
+}
+
+impl Nodes {
+    /// No nodes; the grid's cells are `cell_m` wide.
+    pub fn new(cell_m: f64) -> Self {
+        Self { nodes: Vec::new(), cells: HashMap::new(), cell_m }
+    }
+
+    fn cell(&self, p: &Point3<f64>) -> [i64; 3] {
+        [(p.x / self.cell_m).floor() as i64, (p.y / self.cell_m).floor() as i64, (p.z / self.cell_m).floor() as i64]
+    }
+
+    /// Indices of the nodes within `radius_m` (≤ the cell width) of `p`, ascending.
+    pub fn within(&self, p: &Point3<f64>, radius_m: f64) -> Vec<usize> {
+        let c = self.cell(p);
+        let mut out = Vec::new();
+        for dz in -1..=1 {
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    if let Some(v) = self.cells.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
+                        out.extend(v.iter().copied().filter(|&i| (self.nodes[i].position_m - p).norm() <= radius_m));
+                    }
+                }
+            }
+        }
+        out.sort_unstable();
+        out
+    }
+
+    /// Adds a node at every model point with no node within `spacing_m` (the point's normal
+    /// facing the same way), up to `max_nodes` in all; returns how many were added and how many
+    /// were refused by the cap.
+    pub fn cover(&mut self, points: &[ModelPoint], spacing_m: f64, now: u32, max_nodes: usize) -> (usize, usize) {
+        let (mut added, mut refused) = (0, 0);
+        for p in points {
+            let near = self.within(&p.x_world_m, spacing_m);
+            if near.iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0) {
+                continue;
+            }
+            if self.nodes.len() >= max_nodes {
+                refused += 1;
+                continue;
+            }
+            let c = self.cell(&p.x_world_m);
+            self.cells.entry(c).or_default().push(self.nodes.len());
+            self.nodes.push(Node { position_m: p.x_world_m, reference_m: p.x_world_m, normal: p.n_world, last_seen: now });
+            added += 1;
+        }
+        (added, refused)
+    }
+
+    /// Re-bins every node after positions changed.
+    pub fn rebin(&mut self) {
+        let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+        for (i, n) in self.nodes.iter().enumerate() {
+            cells.entry(self.cell(&n.position_m)).or_default().push(i);
+        }
+        self.cells = cells;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(x: f64, y: f64) -> ModelPoint {
+        ModelPoint { x_world_m: Point3::new(x, y, 0.03), n_world: -Vector3::z(), gray_ref: None }
+    }
+
+    #[test]
+    fn nodes_cover_a_sheet_at_the_spacing_and_not_twice() {
+        let pts: Vec<ModelPoint> = (0..41).flat_map(|i| (0..41).map(move |j| point(i as f64 * 0.001, j as f64 * 0.001))).collect();
+        let mut n = Nodes::new(0.016);
+        let (added, _) = n.cover(&pts, 0.008, 0, 4096);
+        assert!((16..=60).contains(&added), "{added} nodes on a 40 mm sheet at 8 mm");
+        // Every point has a node within the spacing; no two nodes are closer than it.
+        assert!(pts.iter().all(|p| !n.within(&p.x_world_m, 0.008).is_empty()));
+        for (i, a) in n.nodes.iter().enumerate() {
+            assert!(n.nodes[i + 1..].iter().all(|b| (a.position_m - b.position_m).norm() > 0.008));
+        }
+        assert_eq!(n.cover(&pts, 0.008, 1, 4096), (0, 0), "a covered surface gets no new nodes");
+        // The opposite wall (normal the other way) at the same place gets its own nodes.
+        let back: Vec<ModelPoint> = pts.iter().map(|p| ModelPoint { n_world: -p.n_world, ..*p }).collect();
+        assert_eq!(n.cover(&back, 0.008, 2, 4096).0, added);
+        // The cap refuses, and says so.
+        let mut capped = Nodes::new(0.016);
+        let (a, r) = capped.cover(&pts, 0.008, 0, 5);
+        assert_eq!((a, capped.nodes.len()), (5, 5));
+        assert!(r > 0);
+    }
+}

@@ -1,0 +1,136 @@
+//! Parameters of `nonrigid`, organ-scale defaults with their sources.
+
+use capsule_slam_framework::StageError;
+use capsule_slam_framework::params::PluginParams;
+use serde::{Deserialize, Serialize};
+
+use crate::track::icp_rgb::IcpRgbParams;
+
+use super::solve::Weights;
+
+/// Whether the camera moves in the joint solve.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CameraMode {
+    /// Camera and nodes together (the camera held near the rigid start by its prior).
+    Joint,
+    /// The rigid start's camera, nodes only (SurfelWarp).
+    Fixed,
+}
+
+capsule_slam_framework::plugin_params! {
+    /// Parameters of `nonrigid`.
+    pub struct NonrigidParams {
+        /// The rigid start: every `icp-rgb` parameter, as a table `[tracker.params.rigid]`.
+        pub rigid: IcpRgbParams = IcpRgbParams::default(); unit = "-";
+        /// `joint` (camera and nodes) or `fixed` (nodes only, SurfelWarp).
+        pub camera: CameraMode = CameraMode::Fixed; unit = "-";
+        /// Remove from the warp the rigid motion common to its nodes (OpenCV dynafu's
+        /// `factorCommon`): the camera explains it, and the map cannot drift with a camera error.
+        pub factor_common: bool = true; unit = "-";
+        /// Node spacing (SurfelWarp: 25 mm at body scale; nonrigid.md §8: λ/6 ≈ 8–10 mm for a 60 mm wave).
+        pub node_spacing_m: f64 = 0.008; unit = "m"; range = 1.0e-4..=1.0;
+        /// Nodes farther than this do not move a point (and bind no model point); 2 × spacing.
+        pub reach_m: f64 = 0.016; unit = "m"; range = 1.0e-4..=1.0;
+        /// Influencing nodes per point (SurfelWarp, SuPer: 4).
+        pub k: u32 = 4; unit = "-"; range = 1.0..=8.0;
+        /// Graph neighbours per node (SurfelWarp: 8).
+        pub connectivity: u32 = 8; unit = "-"; range = 1.0..=16.0;
+        /// Longest graph edge (nonrigid.md §8: 3 × spacing; no edge across the lumen).
+        pub max_edge_m: f64 = 0.024; unit = "m"; range = 1.0e-4..=1.0;
+        /// Largest angle between the normals of linked nodes (opposite walls face each other).
+        pub max_edge_angle_rad: f64 = 1.2; unit = "rad"; range = 0.0..=3.15;
+        /// Pyramid level of the live frame the warp is fitted on (0 finest).
+        pub level: u32 = 0; unit = "-"; range = 0.0..=2.0;
+        /// Model points every this many prediction pixels (320² → 80² at 4).
+        pub point_stride_px: u32 = 4; unit = "px"; range = 1.0..=32.0;
+        /// Largest angle between a model point's normal and its view ray (SurfelWarp's append
+        /// rule: view·normal > 0.4, 66°); grazing walls are left out of the fit.
+        pub max_incidence_rad: f64 = 1.15; unit = "rad"; range = 0.0..=1.571;
+        /// Fewest model points for a node to be solved.
+        pub min_points_per_node: u32 = 8; unit = "-"; range = 1.0..=10000.0;
+        /// Gauss-Newton iterations (SurfelWarp: 6 after a 3-iteration rigid pre-solve).
+        pub iterations: u32 = 3; unit = "-"; range = 1.0..=50.0;
+        /// Point-to-plane noise scale (as `icp-rgb`'s `sigma_icp_m`).
+        pub sigma_icp_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
+        /// Weight of the photometric term (paper Eq. 4: 0.1).
+        pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
+        /// Intensity noise scale.
+        pub sigma_rgb: f64 = 0.02; unit = "-"; range = 1.0e-6..=1.0;
+        /// Huber threshold in noise scales.
+        pub huber_k: f64 = 1.345; unit = "-"; range = 0.01..=1000.0;
+        /// Correspondence gate (SurfelWarp: 3 cm at body scale; ≈ 2 × wave + motion).
+        pub gate_m: f64 = 0.003; unit = "m"; range = 0.0..=1.0;
+        /// Normal-angle gate (SurfelWarp: n·n ≥ 0.7, 45°).
+        pub angle_gate_rad: f64 = 0.6; unit = "rad"; range = 0.0..=3.15;
+        /// Photometric occlusion gate on depth.
+        pub rgb_depth_gate_m: f64 = 0.002; unit = "m"; range = 0.0..=1.0;
+        /// Smallest live intensity gradient for the photometric term, per level pixel.
+        pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
+        /// Scale of E_rot (R_j near a rotation; Sumner Eq. 3).
+        pub sigma_rot: f64 = 0.01; unit = "-"; range = 1.0e-6..=10.0;
+        /// Weight of E_reg against one data residual (SuPer: ARAP ×10).
+        pub w_reg: f64 = 10.0; unit = "-"; range = 0.0..=1.0e6;
+        /// Scale of the E_reg residuals.
+        pub sigma_reg_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
+        /// Rest-shape prior: a node's pull to where it was created (nonrigid.md §8: ≈ 2 × wave). 0: off.
+        pub sigma_rest_m: f64 = 0.005; unit = "m"; range = 0.0..=10.0;
+        /// Per-frame node translation prior (the wall moves ≤ 0.21 mm per frame at 30 Hz). 0: off.
+        pub sigma_step_m: f64 = 0.0005; unit = "m"; range = 0.0..=10.0;
+        /// Per-frame node R − I prior. 0: off.
+        pub sigma_step_rot: f64 = 0.02; unit = "-"; range = 0.0..=10.0;
+        /// Camera prior toward the rigid start, translation. 0: off.
+        pub sigma_camera_m: f64 = 0.001; unit = "m"; range = 0.0..=10.0;
+        /// Camera prior toward the rigid start, rotation. 0: off.
+        pub sigma_camera_rad: f64 = 0.01; unit = "rad"; range = 0.0..=10.0;
+        /// Fall back to rigid when fewer model points than this share are point-to-plane inliers.
+        pub min_point_share: f64 = 0.3; unit = "-"; range = 0.0..=1.0;
+        /// Fall back to rigid when a node would move more than this in one frame.
+        pub max_step_m: f64 = 0.002; unit = "m"; range = 0.0..=1.0;
+        /// Most nodes (SurfelWarp: 4096).
+        pub max_nodes: u32 = 4096; unit = "-"; range = 1.0..=1.0e6;
+        /// Warp also with depth estimated from the image (shape from shading): its view-dependent
+        /// biases would be read as wall motion, so off by default (the rigid start alone).
+        pub warp_estimated_depth: bool = false; unit = "-";
+    }
+}
+
+impl NonrigidParams {
+    /// Checks what the ranges cannot: the rigid table's own ranges and reach ≥ spacing.
+    pub fn check(&self) -> Result<(), StageError> {
+        if let Some((field, problem)) = self.rigid.range_problems().into_iter().next() {
+            return Err(StageError::invalid_input(format!("nonrigid: rigid.{field}: {problem}")));
+        }
+        crate::common::ordered("min_depth_m", f64::from(self.rigid.min_depth_m), "max_depth_m", f64::from(self.rigid.max_depth_m))?;
+        if self.reach_m < self.node_spacing_m {
+            return Err(StageError::invalid_input(format!(
+                "nonrigid: reach_m ({}) must be at least node_spacing_m ({}), or points between nodes bind none",
+                self.reach_m, self.node_spacing_m
+            )));
+        }
+        Ok(())
+    }
+
+    /// The solver's weights.
+    pub(super) fn weights(&self) -> Weights {
+        Weights {
+            sigma_icp_m: self.sigma_icp_m,
+            w_rgb: self.w_rgb,
+            sigma_rgb: self.sigma_rgb,
+            huber_k: self.huber_k,
+            gate_m: self.gate_m,
+            cos_gate: self.angle_gate_rad.cos(),
+            rgb_depth_gate_m: self.rgb_depth_gate_m,
+            rgb_min_gradient: self.rgb_min_gradient,
+            sigma_rot: self.sigma_rot,
+            w_reg: self.w_reg,
+            sigma_reg_m: self.sigma_reg_m,
+            sigma_rest_m: self.sigma_rest_m,
+            sigma_step_m: self.sigma_step_m,
+            sigma_step_rot: self.sigma_step_rot,
+            sigma_camera_m: self.sigma_camera_m,
+            sigma_camera_rad: self.sigma_camera_rad,
+            iterations: self.iterations as usize,
+        }
+    }
+}

@@ -1,0 +1,301 @@
+//! One frame's joint Gauss-Newton solve of the camera pose and the node increments:
+//!
+//! `E = Σ ρ(r_icp/σ_icp)² + w_rgb Σ ρ(r_rgb/σ_rgb)² + E_rot/σ_rot² + w_reg E_reg/σ_reg²
+//!    + Σ ‖g_j + t_j − ĝ_j‖²/σ_rest² + Σ (‖t_j‖²/σ_step² + ‖R_j − I‖²/σ_rot_step²) + ‖ξ‖²_Σcam`
+//!
+//! (data terms: `energy.rs`; `E_rot`, `E_reg`: the ED graph of `crate::common::ed_graph`, Sumner
+//! et al. 2007 Eqs. (3)–(4); ĝ_j the node's reference position, the rest-shape prior that gives
+//! the motion common to all nodes to the camera (nonrigid.md §5); ξ the camera's departure from
+//! the rigid start). Bindings of model points to nodes are fixed for the frame, correspondences
+//! are re-projected every iteration (SurfelWarp), full steps (no line search).
+
+use capsule_slam_framework::geometry::exp_se3;
+use capsule_slam_framework::{Iso3, StageError};
+use nalgebra::{Matrix3, Vector3, Vector6};
+use rayon::prelude::*;
+
+use crate::common::ed_graph::{Graph, GraphWeights, UNKNOWNS};
+use crate::track::icp_rgb::frames::Level;
+use crate::track::icp_rgb::huber;
+
+use super::energy::{data_camera_row, data_residual, image_gradient_cam, node_row, photo_camera_row, photo_world_gradient};
+use super::points::{ModelPoint, look};
+use super::system::{Accumulator, Factor, Pattern, Row};
+
+/// The weights and gates of the energy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Weights {
+    /// Point-to-plane noise scale, metres.
+    pub sigma_icp_m: f64,
+    /// Weight of the photometric term.
+    pub w_rgb: f64,
+    /// Intensity noise scale.
+    pub sigma_rgb: f64,
+    /// Huber threshold in noise scales.
+    pub huber_k: f64,
+    /// Correspondence distance gate, metres.
+    pub gate_m: f64,
+    /// Cosine of the normal-angle gate.
+    pub cos_gate: f64,
+    /// Photometric occlusion gate, metres.
+    pub rgb_depth_gate_m: f64,
+    /// Smallest live gradient for the photometric term, per level pixel.
+    pub rgb_min_gradient: f64,
+    /// Scale of the E_rot residuals (dimensionless).
+    pub sigma_rot: f64,
+    /// Weight of E_reg.
+    pub w_reg: f64,
+    /// Scale of the E_reg residuals, metres.
+    pub sigma_reg_m: f64,
+    /// Rest-shape prior scale, metres (0: off).
+    pub sigma_rest_m: f64,
+    /// Per-frame node translation prior, metres (0: off).
+    pub sigma_step_m: f64,
+    /// Per-frame node R − I prior (0: off).
+    pub sigma_step_rot: f64,
+    /// Camera prior toward the rigid start: translation, metres (0: off).
+    pub sigma_camera_m: f64,
+    /// Camera prior: rotation, radians (0: off).
+    pub sigma_camera_rad: f64,
+    /// Gauss-Newton iterations.
+    pub iterations: usize,
+}
+
+/// One frame's problem.
+pub struct Problem<'a> {
+    /// The model points with their bindings (solve-node index, weight).
+    pub points: Vec<(&'a ModelPoint, Vec<(usize, f64)>)>,
+    /// The graph of the solve nodes (live positions, identity transforms) and its edges.
+    pub graph: Graph,
+    /// Reference position of each solve node.
+    pub references: Vec<Vector3<f64>>,
+    /// Whether the camera is an unknown.
+    pub camera: bool,
+}
+
+/// What a solve did.
+pub struct Outcome {
+    /// The pose.
+    pub t_world_cam: Iso3,
+    /// Iterations run.
+    pub iterations: usize,
+    /// Point-to-plane inliers at the last linearisation.
+    pub inliers: usize,
+    /// RMS point-to-plane residual there, metres.
+    pub icp_rms_m: f64,
+    /// Photometric residuals used there.
+    pub rgb_n: usize,
+    /// Symbolic analyses run (0: the previous one was reused).
+    pub analyses: usize,
+}
+
+/// The pattern and factorisation kept between frames.
+#[derive(Default)]
+pub struct Cache {
+    kept: Option<(Pattern, Factor)>,
+}
+
+impl<'a> Problem<'a> {
+    fn pairs(&self) -> Vec<(usize, usize)> {
+        let mut pairs: Vec<(usize, usize)> = Vec::new();
+        for (j, nb) in self.graph.neighbours.iter().enumerate() {
+            pairs.extend(nb.iter().map(|&n| (j, n)));
+        }
+        for (_, b) in &self.points {
+            for (k, &(i, _)) in b.iter().enumerate() {
+                pairs.extend(b[..k].iter().map(|&(j, _)| (i, j)));
+            }
+        }
+        pairs
+    }
+
+    /// The graph's weights for `E_rot`, `E_reg` (no point constraints).
+    fn graph_weights(w: &Weights) -> GraphWeights {
+        GraphWeights { rot: 1.0 / (w.sigma_rot * w.sigma_rot), reg: w.w_reg, con: 0.0, length_unit_m: w.sigma_reg_m, iterations: 1 }
+    }
+
+    /// Solves from `t_start` (the rigid estimate); the graph's node transforms hold the warp.
+    pub fn solve(&mut self, level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
+        let nodes = self.graph.deformation.nodes.len();
+        let pattern = Pattern::new(nodes, &self.pairs(), self.camera).map_err(|e| StageError::invalid_input(format!("nonrigid: normal-equation pattern: {e:?}")))?;
+        let (mut pattern, mut factor, analyses) = match cache.kept.take() {
+            Some((old, f)) if old.same_structure(&pattern) => (pattern, f, 0),
+            _ => {
+                let factor = Factor::new(&pattern).map_err(solver_error)?;
+                (pattern, factor, 1)
+            }
+        };
+        let pair_ids: Vec<Vec<usize>> = self.points.iter().map(|(_, b)| pair_ids(&pattern, b)).collect();
+        let gw = Self::graph_weights(w);
+        let mut reg_slots = Vec::new();
+        self.graph.visit(&gw, |_, row| {
+            for &(a, _) in row {
+                for &(b, _) in row {
+                    if a >= b {
+                        reg_slots.push(pattern.slot(a, b).unwrap_or(usize::MAX));
+                    }
+                }
+            }
+        });
+        let diag: Vec<usize> = (0..pattern.unknowns()).map(|u| pattern.slot(u, u).unwrap_or(usize::MAX)).collect();
+        let mut t = *t_start;
+        let mut xi = Vector6::<f64>::zeros();
+        let mut out = Outcome { t_world_cam: t, iterations: 0, inliers: 0, icp_rms_m: f64::INFINITY, rgb_n: 0, analyses };
+        for _ in 0..w.iterations {
+            let (acc, stats) = self.accumulate(level, &t, w, &pattern, &pair_ids);
+            (out.inliers, out.icp_rms_m, out.rgb_n) = stats;
+            let mut g = pattern.scatter(&acc);
+            self.add_graph_rows(&gw, &mut pattern, &reg_slots, &mut g);
+            self.add_priors(w, &xi, &mut pattern, &diag, &mut g);
+            let step = factor.solve(&pattern, &g).map_err(solver_error)?;
+            if !step.iter().all(|v| v.is_finite()) {
+                return Err(StageError::invalid_input("nonrigid: the Gauss-Newton step is not finite"));
+            }
+            self.graph.shift(&step[..UNKNOWNS * nodes], 1.0);
+            if self.camera {
+                let d = Vector6::from_column_slice(&step[UNKNOWNS * nodes..]);
+                t = exp_se3(&d) * t;
+                xi += d;
+            }
+            out.iterations += 1;
+            let norm = step.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if norm < 1e-9 {
+                break;
+            }
+        }
+        out.t_world_cam = t;
+        cache.kept = Some((pattern, factor));
+        Ok(out)
+    }
+
+    /// The data terms at pose `t`: the accumulator and (inliers, ICP RMS, photometric count),
+    /// summed over four fixed chunks in order (the same sums on any thread count).
+    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, pair_ids: &[Vec<usize>]) -> (Accumulator, (usize, f64, usize)) {
+        let chunk = self.points.len().div_ceil(4).max(1);
+        let parts: Vec<(Accumulator, usize, f64, usize)> = self
+            .points
+            .par_chunks(chunk)
+            .zip(pair_ids.par_chunks(chunk))
+            .map(|(pts, ids)| {
+                let mut acc = pattern.accumulator();
+                let (mut n, mut sse, mut rgb) = (0usize, 0.0, 0usize);
+                for ((p, binding), pairs) in pts.iter().zip(ids) {
+                    if let Some(r) = self.point_terms(level, t, w, p, binding, pairs, &mut acc) {
+                        n += r.0;
+                        sse += r.1;
+                        rgb += r.2;
+                    }
+                }
+                (acc, n, sse, rgb)
+            })
+            .collect();
+        let mut total = pattern.accumulator();
+        let (mut n, mut sse, mut rgb) = (0, 0.0, 0);
+        for (a, pn, ps, pr) in &parts {
+            total.merge(a);
+            n += pn;
+            sse += ps;
+            rgb += pr;
+        }
+        let rms = if n == 0 { f64::INFINITY } else { (sse / n as f64).sqrt() };
+        (total, (n, rms, rgb))
+    }
+
+    /// One point's residuals added to `acc`: (ICP inliers, squared ICP residual, photometric).
+    #[allow(clippy::too_many_arguments)]
+    fn point_terms(&self, level: &Level, t: &Iso3, w: &Weights, p: &ModelPoint, binding: &[(usize, f64)], pairs: &[usize], acc: &mut Accumulator) -> Option<(usize, f64, usize)> {
+        let d = &self.graph.deformation;
+        let warped = d.warp_with(&p.x_world_m, binding);
+        let live = look(level, t, &warped)?;
+        let mut rows: Vec<(usize, [f64; 12])> = Vec::with_capacity(binding.len());
+        let mut out = (0, 0.0, 0);
+        let close = (warped - live.p_world_m).norm() <= w.gate_m && p.n_world.dot(&live.n_world) >= w.cos_gate;
+        if close {
+            let r = data_residual(&p.n_world, &warped, &live.p_world_m);
+            rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk))));
+            let row = Row { nodes: &rows, pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
+            acc.add(&row, r, huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m));
+            out = (1, r * r, 0);
+        }
+        if w.w_rgb > 0.0
+            && let (Some(reference), Some((i, gx, gy))) = (p.gray_ref, live.gray)
+            && (live.depth_m - live.q_cam_m.z).abs() <= w.rgb_depth_gate_m
+            && gx * gx + gy * gy >= w.rgb_min_gradient * w.rgb_min_gradient
+        {
+            let a = image_gradient_cam(&live.q_cam_m, (gx, gy), level.cam.fx, level.cam.fy);
+            let m = photo_world_gradient(t.rotation.to_rotation_matrix().matrix(), &a);
+            rows.clear();
+            rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&m, &(p.x_world_m - d.nodes[k].position_m), wk))));
+            let r = i - reference;
+            let row = Row { nodes: &rows, pairs, camera: photo_camera_row(&m, &warped) };
+            acc.add(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
+            out.2 = 1;
+        }
+        Some(out)
+    }
+
+    /// Adds the graph's `E_rot` and `E_reg` rows (slots in visiting order).
+    fn add_graph_rows(&self, gw: &GraphWeights, pattern: &mut Pattern, slots: &[usize], g: &mut [f64]) {
+        let vals = pattern.a.val_mut();
+        let mut next = slots.iter();
+        self.graph.visit(gw, |r, row| {
+            for &(a, ja) in row {
+                g[a] += ja * r;
+                for &(b, jb) in row {
+                    if a >= b
+                        && let Some(&s) = next.next()
+                        && s != usize::MAX
+                    {
+                        vals[s] += ja * jb;
+                    }
+                }
+            }
+        });
+    }
+
+    /// Adds the rest-shape, step and camera priors (all on the diagonal) and a tiny
+    /// Levenberg term.
+    fn add_priors(&self, w: &Weights, xi: &Vector6<f64>, pattern: &mut Pattern, diag: &[usize], g: &mut [f64]) {
+        let vals = pattern.a.val_mut();
+        let inv2 = |s: f64| if s > 0.0 { 1.0 / (s * s) } else { 0.0 };
+        let mut add = |u: usize, h: f64, grad: f64| {
+            if diag[u] != usize::MAX {
+                vals[diag[u]] += h + 1e-9;
+            }
+            g[u] += grad;
+        };
+        let (rest, step, rot) = (inv2(w.sigma_rest_m), inv2(w.sigma_step_m), inv2(w.sigma_step_rot));
+        for (j, node) in self.graph.deformation.nodes.iter().enumerate() {
+            let off = node.position_m.coords + node.translation_m - self.references[j];
+            let dr = node.rotation - Matrix3::identity();
+            for m in 0..9 {
+                add(UNKNOWNS * j + m, rot, rot * dr[(m % 3, m / 3)]);
+            }
+            for axis in 0..3 {
+                add(UNKNOWNS * j + 9 + axis, rest + step, rest * off[axis] + step * node.translation_m[axis]);
+            }
+        }
+        if self.camera {
+            let base = UNKNOWNS * self.graph.deformation.nodes.len();
+            for c in 0..6 {
+                let h = if c < 3 { inv2(w.sigma_camera_m) } else { inv2(w.sigma_camera_rad) };
+                add(base + c, h, h * xi[c]);
+            }
+        }
+    }
+}
+
+/// The block ids of the node pairs of one binding, `k (k + 1) / 2 + l` for l ≤ k.
+fn pair_ids(pattern: &Pattern, binding: &[(usize, f64)]) -> Vec<usize> {
+    let mut out = Vec::with_capacity(binding.len() * (binding.len() + 1) / 2);
+    for (k, &(i, _)) in binding.iter().enumerate() {
+        for &(j, _) in &binding[..=k] {
+            out.push(pattern.block(i, j).unwrap_or(0));
+        }
+    }
+    out
+}
+
+fn solver_error(e: impl std::fmt::Display) -> StageError {
+    StageError::invalid_input(format!("nonrigid: sparse Cholesky failed: {e}"))
+}

@@ -1,0 +1,259 @@
+//! The normal equations of the joint solve, `JᵀWJ δ = −JᵀWr`, in faer's sparse column format:
+//! 12 unknowns per node (the ED graph's order), then the camera's 6 (an arrowhead: the camera
+//! couples to every node). Data terms are gathered per pixel into dense 12 × 12 node-pair blocks
+//! and scattered once per iteration; the graph's own rows (`E_rot`, `E_reg`) land through slots
+//! found once per pattern. The sparse Cholesky's symbolic analysis is kept while the pattern
+//! (nodes, edges and the node pairs the pixels couple) stays the same.
+
+use std::collections::HashMap;
+
+use faer::sparse::{SparseColMat, Triplet};
+use nalgebra::Vector6;
+
+use crate::common::ed_graph::UNKNOWNS;
+use crate::common::sparse_llt::{SparseLlt, SparseLltError};
+
+/// Where each block of the normal matrix lives in the sparse values.
+pub struct Pattern {
+    /// The matrix (lower triangle), values overwritten per iteration.
+    pub a: SparseColMat<usize, f64>,
+    nodes: usize,
+    camera: bool,
+    /// Block id of each node pair (i ≥ j).
+    block_of: HashMap<(usize, usize), usize>,
+    /// Value slot of each entry of each block (`12 a + b`: row a of node i, column b of node
+    /// j); `usize::MAX` for the upper half of a diagonal block.
+    block_slots: Vec<usize>,
+    /// Value slots of the camera rows against each node's columns (`12 c + b`).
+    camera_slots: Vec<usize>,
+    /// Value slots of the camera block's lower triangle (`6 r + c`, `usize::MAX` above).
+    camera_block: [usize; 36],
+}
+
+impl Pattern {
+    /// The pattern of `nodes` nodes coupled in the given pairs (any order; the diagonal is
+    /// always there), with a camera block when `camera`.
+    pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool) -> Result<Self, faer::sparse::CreationError> {
+        let mut blocks: Vec<(usize, usize)> = (0..nodes).map(|i| (i, i)).chain(pairs.iter().map(|&(i, j)| (i.max(j), i.min(j)))).collect();
+        blocks.sort_unstable_by_key(|&(i, j)| (j, i));
+        blocks.dedup();
+        let n = UNKNOWNS * nodes + if camera { 6 } else { 0 };
+        let mut trips = Vec::with_capacity(blocks.len() * 144 + nodes * 72 + 36);
+        for &(i, j) in &blocks {
+            for a in 0..UNKNOWNS {
+                for b in 0..UNKNOWNS {
+                    if i > j || a >= b {
+                        trips.push(Triplet::new(UNKNOWNS * i + a, UNKNOWNS * j + b, 0.0));
+                    }
+                }
+            }
+        }
+        let cam0 = UNKNOWNS * nodes;
+        if camera {
+            for j in 0..nodes {
+                for c in 0..6 {
+                    for b in 0..UNKNOWNS {
+                        trips.push(Triplet::new(cam0 + c, UNKNOWNS * j + b, 0.0));
+                    }
+                }
+            }
+            for r in 0..6 {
+                for c in 0..=r {
+                    trips.push(Triplet::new(cam0 + r, cam0 + c, 0.0));
+                }
+            }
+        }
+        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trips)?;
+        let mut p = Self { a, nodes, camera, block_of: HashMap::new(), block_slots: Vec::new(), camera_slots: Vec::new(), camera_block: [usize::MAX; 36] };
+        for (id, &(i, j)) in blocks.iter().enumerate() {
+            p.block_of.insert((i, j), id);
+            for a in 0..UNKNOWNS {
+                for b in 0..UNKNOWNS {
+                    let s = if i > j || a >= b { p.slot(UNKNOWNS * i + a, UNKNOWNS * j + b).unwrap_or(usize::MAX) } else { usize::MAX };
+                    p.block_slots.push(s);
+                }
+            }
+        }
+        if camera {
+            for j in 0..nodes {
+                for c in 0..6 {
+                    for b in 0..UNKNOWNS {
+                        let s = p.slot(cam0 + c, UNKNOWNS * j + b).unwrap_or(usize::MAX);
+                        p.camera_slots.push(s);
+                    }
+                }
+            }
+            for r in 0..6 {
+                for c in 0..=r {
+                    p.camera_block[6 * r + c] = p.slot(cam0 + r, cam0 + c).unwrap_or(usize::MAX);
+                }
+            }
+        }
+        Ok(p)
+    }
+
+    /// Unknowns in all.
+    pub fn unknowns(&self) -> usize {
+        self.a.nrows()
+    }
+
+    /// The block id of the node pair (either order), if it is in the pattern.
+    pub fn block(&self, i: usize, j: usize) -> Option<usize> {
+        self.block_of.get(&(i.max(j), i.min(j))).copied()
+    }
+
+    /// The value slot of entry (row, col) of the lower triangle.
+    pub fn slot(&self, row: usize, col: usize) -> Option<usize> {
+        let (row, col) = (row.max(col), row.min(col));
+        let sym = self.a.symbolic();
+        let (lo, hi) = (sym.col_ptr()[col], sym.col_ptr()[col + 1]);
+        let idx = &sym.row_idx()[lo..hi];
+        let at = idx.partition_point(|&x| x < row);
+        (at < idx.len() && idx[at] == row).then_some(lo + at)
+    }
+
+    /// Whether two patterns have the same structure (so one analysis serves both).
+    pub fn same_structure(&self, other: &Pattern) -> bool {
+        let (a, b) = (self.a.symbolic(), other.a.symbolic());
+        a.nrows() == b.nrows() && a.col_ptr() == b.col_ptr() && a.row_idx() == b.row_idx()
+    }
+
+    /// A zeroed accumulator for this pattern.
+    pub fn accumulator(&self) -> Accumulator {
+        Accumulator {
+            blocks: vec![[0.0; 144]; self.block_of.len()],
+            camera_node: if self.camera { vec![[0.0; 72]; self.nodes] } else { Vec::new() },
+            camera: [0.0; 36],
+            g: vec![0.0; self.unknowns()],
+            energy: 0.0,
+        }
+    }
+
+    /// Writes the accumulated data blocks into the matrix values (zeroing the rest) and
+    /// returns the gradient.
+    pub fn scatter(&mut self, acc: &Accumulator) -> Vec<f64> {
+        let vals = self.a.val_mut();
+        vals.iter_mut().for_each(|v| *v = 0.0);
+        for (id, block) in acc.blocks.iter().enumerate() {
+            for (e, v) in block.iter().enumerate() {
+                let s = self.block_slots[144 * id + e];
+                if s != usize::MAX {
+                    vals[s] += v;
+                }
+            }
+        }
+        for (j, block) in acc.camera_node.iter().enumerate() {
+            for (e, v) in block.iter().enumerate() {
+                vals[self.camera_slots[72 * j + e]] += v;
+            }
+        }
+        for (e, v) in acc.camera.iter().enumerate() {
+            if self.camera_block[e] != usize::MAX {
+                vals[self.camera_block[e]] += v;
+            }
+        }
+        acc.g.clone()
+    }
+}
+
+/// One residual's Jacobian: per bound node (solve index, block ids against the other bound
+/// nodes, 12 entries) and the camera's 6.
+pub struct Row<'a> {
+    /// `(node, row)` for each bound node, in binding order.
+    pub nodes: &'a [(usize, [f64; 12])],
+    /// Block ids of the pairs (k, l), k ≥ l in binding order: `pairs[k (k + 1) / 2 + l]`.
+    pub pairs: &'a [usize],
+    /// The camera entries (ignored without a camera block).
+    pub camera: Vector6<f64>,
+}
+
+/// JᵀWJ in dense blocks and JᵀWr, summed over residuals.
+#[derive(Clone)]
+pub struct Accumulator {
+    blocks: Vec<[f64; 144]>,
+    camera_node: Vec<[f64; 72]>,
+    camera: [f64; 36],
+    /// JᵀWr.
+    pub g: Vec<f64>,
+    /// Σ w r².
+    pub energy: f64,
+}
+
+impl Accumulator {
+    /// Adds one residual r of weight w.
+    pub fn add(&mut self, row: &Row<'_>, r: f64, w: f64) {
+        self.energy += w * r * r;
+        let has_camera = !self.camera_node.is_empty();
+        for (k, (i, jk)) in row.nodes.iter().enumerate() {
+            let g = &mut self.g[UNKNOWNS * i..UNKNOWNS * (i + 1)];
+            for (gv, jv) in g.iter_mut().zip(jk) {
+                *gv += w * r * jv;
+            }
+            for (l, (j, jl)) in row.nodes.iter().enumerate().take(k + 1) {
+                let block = &mut self.blocks[row.pairs[k * (k + 1) / 2 + l]];
+                // Row a belongs to the larger node index of the block.
+                let (rows, cols) = if i >= j { (jk, jl) } else { (jl, jk) };
+                for a in 0..UNKNOWNS {
+                    let wa = w * rows[a];
+                    if wa == 0.0 {
+                        continue;
+                    }
+                    for b in 0..UNKNOWNS {
+                        block[UNKNOWNS * a + b] += wa * cols[b];
+                    }
+                }
+            }
+            if has_camera {
+                let block = &mut self.camera_node[*i];
+                for c in 0..6 {
+                    let wc = w * row.camera[c];
+                    for b in 0..UNKNOWNS {
+                        block[UNKNOWNS * c + b] += wc * jk[b];
+                    }
+                }
+            }
+        }
+        if has_camera {
+            let base = self.g.len() - 6;
+            for c in 0..6 {
+                self.g[base + c] += w * r * row.camera[c];
+                for d in 0..=c {
+                    self.camera[6 * c + d] += w * row.camera[c] * row.camera[d];
+                }
+            }
+        }
+    }
+
+    /// Adds another accumulator of the same pattern.
+    pub fn merge(&mut self, o: &Accumulator) {
+        for (a, b) in self.blocks.iter_mut().zip(&o.blocks) {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        }
+        for (a, b) in self.camera_node.iter_mut().zip(&o.camera_node) {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        }
+        self.camera.iter_mut().zip(&o.camera).for_each(|(x, y)| *x += y);
+        self.g.iter_mut().zip(&o.g).for_each(|(x, y)| *x += y);
+        self.energy += o.energy;
+    }
+}
+
+/// The factorisation, kept across frames while the pattern's structure is unchanged.
+pub struct Factor {
+    llt: SparseLlt,
+}
+
+impl Factor {
+    /// Analyses `pattern`.
+    pub fn new(pattern: &Pattern) -> Result<Self, SparseLltError> {
+        Ok(Self { llt: SparseLlt::new(pattern.a.symbolic(), false)? })
+    }
+
+    /// Solves `A δ = −g` for the pattern's current values.
+    pub fn solve(&mut self, pattern: &Pattern, g: &[f64]) -> Result<Vec<f64>, SparseLltError> {
+        self.llt.factorize(pattern.a.as_ref())?;
+        let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
+        self.llt.solve_in_place(&mut step)?;
+        Ok(step)
+    }
+}
