@@ -5,7 +5,7 @@
 use nalgebra::{Point3, Vector3};
 
 /// Most cells along one axis (wider cells beyond it; any width ≥ the reach is correct).
-const MAX_CELLS_PER_AXIS: usize = 128;
+const MAX_CELLS_PER_AXIS: usize = 32;
 
 /// Node indices by grid cell, dense over the nodes' bounding box.
 pub(super) struct NodeGrid {
@@ -13,7 +13,8 @@ pub(super) struct NodeGrid {
     /// Corner of cell (0, 0, 0), one cell below the nodes' lowest corner.
     origin: Point3<f64>,
     dims: [usize; 3],
-    cells: Vec<Vec<usize>>,
+    /// Per cell, the nodes of the 27 cells around it (ascending).
+    hoods: Vec<Vec<usize>>,
 }
 
 impl NodeGrid {
@@ -25,17 +26,22 @@ impl NodeGrid {
             hi = hi.sup(p);
         }
         if !(lo.x <= hi.x) {
-            return Self { cell_m: reach_m, origin: Point3::origin(), dims: [0; 3], cells: Vec::new() };
+            return Self { cell_m: reach_m, origin: Point3::origin(), dims: [0; 3], hoods: Vec::new() };
         }
         let extent = (hi - lo).max();
         let cell_m = reach_m.max(extent / (MAX_CELLS_PER_AXIS - 2) as f64);
         let origin = lo - Vector3::repeat(cell_m);
         let dims = [0, 1, 2].map(|a| ((hi[a] - origin[a]) / cell_m).floor() as usize + 2);
-        let mut grid = Self { cell_m, origin, dims, cells: vec![Vec::new(); dims[0] * dims[1] * dims[2]] };
+        let mut grid = Self { cell_m, origin, dims, hoods: vec![Vec::new(); dims[0] * dims[1] * dims[2]] };
         for (i, p) in positions.iter().enumerate() {
-            if let Some(c) = grid.cell(p) {
-                let k = grid.index(c);
-                grid.cells[k].push(i);
+            let Some(c) = grid.cell(p) else { continue };
+            for z in c[2].saturating_sub(1)..=(c[2] + 1).min(dims[2] - 1) {
+                for y in c[1].saturating_sub(1)..=(c[1] + 1).min(dims[1] - 1) {
+                    for x in c[0].saturating_sub(1)..=(c[0] + 1).min(dims[0] - 1) {
+                        let k = grid.index([x, y, z]);
+                        grid.hoods[k].push(i);
+                    }
+                }
             }
         }
         grid
@@ -59,16 +65,10 @@ impl NodeGrid {
 
     /// The nodes in the 27 cells around `p` (a superset of those within the reach); none when
     /// `p` lies outside the grid, which is then farther than the reach from every node.
-    pub(super) fn near(&self, p: &Point3<f64>) -> Vec<usize> {
-        let Some(c) = self.cell(p) else { return Vec::new() };
-        let mut out = Vec::new();
-        for z in c[2].saturating_sub(1)..=(c[2] + 1).min(self.dims[2] - 1) {
-            for y in c[1].saturating_sub(1)..=(c[1] + 1).min(self.dims[1] - 1) {
-                for x in c[0].saturating_sub(1)..=(c[0] + 1).min(self.dims[0] - 1) {
-                    out.extend_from_slice(&self.cells[self.index([x, y, z])]);
-                }
-            }
+    pub(super) fn near(&self, p: &Point3<f64>) -> &[usize] {
+        match self.cell(p) {
+            Some(c) => &self.hoods[self.index(c)],
+            None => &[],
         }
-        out
     }
 }

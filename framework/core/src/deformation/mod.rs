@@ -331,7 +331,7 @@ impl Warper<'_> {
         if near.is_empty() {
             return;
         }
-        let infl = d.influences_among(&p, near.into_iter().filter(|i| r.contains(i)));
+        let infl = d.influences_among(&p, near.iter().copied().filter(|i| r.contains(i)));
         if infl.is_empty() {
             return;
         }

@@ -101,6 +101,8 @@ impl Tracker for Nonrigid {
             ctx.warn(format!("nonrigid: {refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
         }
         ctx.count("nonrigid_nodes_added", added as f64);
+        ctx.count("ms_nonrigid_points", clock.elapsed().as_secs_f64() * 1e3);
+        let clock = std::time::Instant::now();
         let outcome = self.solve(&points, &level, &rigid, now, ctx);
         ctx.count("ms_nonrigid", clock.elapsed().as_secs_f64() * 1e3);
         match outcome {
@@ -153,6 +155,9 @@ impl Nonrigid {
                 ctx.count("nonrigid_points", points as f64);
                 ctx.count("nonrigid_iterations", outcome.iterations as f64);
                 ctx.count("nonrigid_analyses", outcome.analyses as f64);
+                ctx.count("ms_nonrigid_setup", outcome.ms_setup);
+                ctx.count("ms_nonrigid_assemble", outcome.ms_assemble);
+                ctx.count("ms_nonrigid_factor", outcome.ms_factor);
                 Ok(Some(TrackResult {
                     t_world_cam,
                     status: TrackStatus::Tracked,
@@ -166,9 +171,10 @@ impl Nonrigid {
         }
     }
 
-    /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
-    /// the nodes near them; moves the nodes when it succeeds.
-    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3, now: u32) -> Result<Fit, StageError> {
+    /// The frame's problem: the nodes with at least `min_points_per_node` model points (their
+    /// indices), the points bound to them, the graph with its edges; and every node's point
+    /// count. `None` when no node has enough points.
+    pub(crate) fn problem<'a>(&self, points: &'a [ModelPoint]) -> Option<(Problem<'a>, Vec<usize>, Vec<usize>)> {
         let p = &self.params;
         let reach = p.reach_m;
         // Every node as a deformation (times 0, so the order is kept) to bind points.
@@ -181,7 +187,7 @@ impl Nonrigid {
         }
         let solve_ids: Vec<usize> = (0..used.len()).filter(|&i| used[i] >= p.min_points_per_node as usize).collect();
         if solve_ids.is_empty() {
-            return Ok(Fit::Fallback("no node has enough model points".into()));
+            return None;
         }
         let mut index = vec![usize::MAX; all.nodes.len()];
         for (s, &i) in solve_ids.iter().enumerate() {
@@ -205,7 +211,16 @@ impl Nonrigid {
             })
             .collect();
         let references = solve_ids.iter().map(|&i| self.nodes.nodes[i].reference_m.coords).collect();
-        let mut problem = Problem { points: bound, graph, references, camera: p.camera == CameraMode::Joint };
+        Some((Problem { points: bound, graph, references, camera: p.camera == CameraMode::Joint }, solve_ids, used))
+    }
+
+    /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
+    /// the nodes near them; moves the nodes when it succeeds.
+    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3, now: u32) -> Result<Fit, StageError> {
+        let Some((mut problem, solve_ids, used)) = self.problem(points) else {
+            return Ok(Fit::Fallback("no node has enough model points".into()));
+        };
+        let p = &self.params;
         let outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
         let share = outcome.inliers as f64 / points.len().max(1) as f64;
         let mut d = problem.graph.deformation;

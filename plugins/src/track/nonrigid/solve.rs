@@ -87,6 +87,21 @@ pub struct Outcome {
     pub rgb_n: usize,
     /// Symbolic analyses run (0: the previous one was reused).
     pub analyses: usize,
+    /// Time building the pattern and the bindings' slots, ms.
+    pub ms_setup: f64,
+    /// Time assembling the normal equations, ms (all iterations).
+    pub ms_assemble: f64,
+    /// Time factorising and solving, ms (all iterations).
+    pub ms_factor: f64,
+}
+
+/// A problem's pattern and the slots of its terms.
+pub(crate) struct Layout {
+    /// The normal matrix (lower triangle).
+    pub(crate) pattern: Pattern,
+    pair_ids: Vec<Vec<usize>>,
+    reg_slots: Vec<usize>,
+    diag: Vec<usize>,
 }
 
 /// The pattern and factorisation kept between frames.
@@ -114,21 +129,13 @@ impl<'a> Problem<'a> {
         GraphWeights { rot: 1.0 / (w.sigma_rot * w.sigma_rot), reg: w.w_reg, con: 0.0, length_unit_m: w.sigma_reg_m, iterations: 1 }
     }
 
-    /// Solves from `t_start` (the rigid estimate); the graph's node transforms hold the warp.
-    pub fn solve(&mut self, level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
-        let nodes = self.graph.deformation.nodes.len();
-        let pattern = Pattern::new(nodes, &self.pairs(), self.camera).map_err(|e| StageError::invalid_input(format!("nonrigid: normal-equation pattern: {e:?}")))?;
-        let (mut pattern, mut factor, analyses) = match cache.kept.take() {
-            Some((old, f)) if old.same_structure(&pattern) => (pattern, f, 0),
-            _ => {
-                let factor = Factor::new(&pattern).map_err(solver_error)?;
-                (pattern, factor, 1)
-            }
-        };
+    /// The normal-equation pattern of this problem and where every term lands in it.
+    pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
+        let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera)
+            .map_err(|e| StageError::invalid_input(format!("nonrigid: normal-equation pattern: {e:?}")))?;
         let pair_ids: Vec<Vec<usize>> = self.points.iter().map(|(_, b)| pair_ids(&pattern, b)).collect();
-        let gw = Self::graph_weights(w);
         let mut reg_slots = Vec::new();
-        self.graph.visit(&gw, |_, row| {
+        self.graph.visit(&Self::graph_weights(w), |_, row| {
             for &(a, _) in row {
                 for &(b, _) in row {
                     if a >= b {
@@ -138,16 +145,49 @@ impl<'a> Problem<'a> {
             }
         });
         let diag: Vec<usize> = (0..pattern.unknowns()).map(|u| pattern.slot(u, u).unwrap_or(usize::MAX)).collect();
+        Ok(Layout { pattern, pair_ids, reg_slots, diag })
+    }
+
+    /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
+    /// camera departure `xi`; returns `JᵀWr` and (ICP inliers, ICP RMS, photometric count).
+    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, (usize, f64, usize)) {
+        let (acc, stats) = self.accumulate(level, t, w, &layout.pattern, &layout.pair_ids);
+        let mut g = layout.pattern.scatter(&acc);
+        self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
+        self.add_priors(w, xi, &mut layout.pattern, &layout.diag, &mut g);
+        (g, stats)
+    }
+
+    /// Solves from `t_start` (the rigid estimate); the graph's node transforms hold the warp.
+    pub fn solve(&mut self, level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
+        let nodes = self.graph.deformation.nodes.len();
+        let clock = std::time::Instant::now();
+        let mut layout = self.layout(w)?;
+        let (mut factor, analyses) = match cache.kept.take() {
+            Some((old, f)) if old.same_structure(&layout.pattern) => (f, 0),
+            _ => (Factor::new(&layout.pattern).map_err(solver_error)?, 1),
+        };
         let mut t = *t_start;
         let mut xi = Vector6::<f64>::zeros();
-        let mut out = Outcome { t_world_cam: t, iterations: 0, inliers: 0, icp_rms_m: f64::INFINITY, rgb_n: 0, analyses };
+        let mut out = Outcome {
+            t_world_cam: t,
+            iterations: 0,
+            inliers: 0,
+            icp_rms_m: f64::INFINITY,
+            rgb_n: 0,
+            analyses,
+            ms_setup: ms(clock),
+            ms_assemble: 0.0,
+            ms_factor: 0.0,
+        };
         for _ in 0..w.iterations {
-            let (acc, stats) = self.accumulate(level, &t, w, &pattern, &pair_ids);
+            let clock = std::time::Instant::now();
+            let (g, stats) = self.linearise(level, &t, &xi, w, &mut layout);
             (out.inliers, out.icp_rms_m, out.rgb_n) = stats;
-            let mut g = pattern.scatter(&acc);
-            self.add_graph_rows(&gw, &mut pattern, &reg_slots, &mut g);
-            self.add_priors(w, &xi, &mut pattern, &diag, &mut g);
-            let step = factor.solve(&pattern, &g).map_err(solver_error)?;
+            out.ms_assemble += ms(clock);
+            let clock = std::time::Instant::now();
+            let step = factor.solve(&layout.pattern, &g).map_err(solver_error)?;
+            out.ms_factor += ms(clock);
             if !step.iter().all(|v| v.is_finite()) {
                 return Err(StageError::invalid_input("nonrigid: the Gauss-Newton step is not finite"));
             }
@@ -164,7 +204,7 @@ impl<'a> Problem<'a> {
             }
         }
         out.t_world_cam = t;
-        cache.kept = Some((pattern, factor));
+        cache.kept = Some((layout.pattern, factor));
         Ok(out)
     }
 
@@ -180,7 +220,7 @@ impl<'a> Problem<'a> {
                 let mut acc = pattern.accumulator();
                 let (mut n, mut sse, mut rgb) = (0usize, 0.0, 0usize);
                 for ((p, binding), pairs) in pts.iter().zip(ids) {
-                    if let Some(r) = self.point_terms(level, t, w, p, binding, pairs, &mut acc) {
+                    if let Some(r) = self.point_terms(level, t, w, p, binding, pairs, &mut |row, r, wt| acc.add(row, r, wt)) {
                         n += r.0;
                         sse += r.1;
                         rgb += r.2;
@@ -203,7 +243,16 @@ impl<'a> Problem<'a> {
 
     /// One point's residuals added to `acc`: (ICP inliers, squared ICP residual, photometric).
     #[allow(clippy::too_many_arguments)]
-    fn point_terms(&self, level: &Level, t: &Iso3, w: &Weights, p: &ModelPoint, binding: &[(usize, f64)], pairs: &[usize], acc: &mut Accumulator) -> Option<(usize, f64, usize)> {
+    pub(crate) fn point_terms(
+        &self,
+        level: &Level,
+        t: &Iso3,
+        w: &Weights,
+        p: &ModelPoint,
+        binding: &[(usize, f64)],
+        pairs: &[usize],
+        sink: &mut impl FnMut(&Row<'_>, f64, f64),
+    ) -> Option<(usize, f64, usize)> {
         let d = &self.graph.deformation;
         let warped = d.warp_with(&p.x_world_m, binding);
         let live = look(level, t, &warped)?;
@@ -214,7 +263,7 @@ impl<'a> Problem<'a> {
             let r = data_residual(&p.n_world, &warped, &live.p_world_m);
             rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk))));
             let row = Row { nodes: &rows, pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
-            acc.add(&row, r, huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m));
+            sink(&row, r, huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m));
             out = (1, r * r, 0);
         }
         if w.w_rgb > 0.0
@@ -228,7 +277,7 @@ impl<'a> Problem<'a> {
             rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&m, &(p.x_world_m - d.nodes[k].position_m), wk))));
             let r = i - reference;
             let row = Row { nodes: &rows, pairs, camera: photo_camera_row(&m, &warped) };
-            acc.add(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
+            sink(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
             out.2 = 1;
         }
         Some(out)
@@ -294,6 +343,10 @@ fn pair_ids(pattern: &Pattern, binding: &[(usize, f64)]) -> Vec<usize> {
         }
     }
     out
+}
+
+fn ms(since: std::time::Instant) -> f64 {
+    since.elapsed().as_secs_f64() * 1e3
 }
 
 fn solver_error(e: impl std::fmt::Display) -> StageError {

@@ -97,3 +97,161 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
         assert!(t_world_cam.translation.vector.norm() < 0.05e-3, "{camera:?}: the camera moved {:.4} mm", t_world_cam.translation.vector.norm() * 1e3);
     }
 }
+
+/// The dense symmetric matrix of a pattern's lower triangle.
+fn dense(pattern: &super::system::Pattern) -> nalgebra::DMatrix<f64> {
+    let n = pattern.unknowns();
+    let (sym, vals) = (pattern.a.symbolic(), pattern.a.val());
+    let mut a = nalgebra::DMatrix::zeros(n, n);
+    for c in 0..n {
+        for k in sym.col_ptr()[c]..sym.col_ptr()[c + 1] {
+            let r = sym.row_idx()[k];
+            a[(r, c)] = vals[k];
+            a[(c, r)] = vals[k];
+        }
+    }
+    a
+}
+
+/// A tracker covering the rest wall, its problem's points, and the live level of the wall
+/// moved by `amp_m`.
+fn setup(camera: CameraMode, amp_m: f64) -> (Nonrigid, Vec<ModelPoint>, Level) {
+    let points: Vec<ModelPoint> = model(amp_m).iter().map(|p| p.0).collect();
+    let mut t = tracker(camera);
+    t.nodes.cover(&points, t.params.node_spacing_m, 0, 4096);
+    (t, points, level(amp_m))
+}
+
+#[test]
+fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
+    let (mut t, points, live) = setup(CameraMode::Joint, 0.0003);
+    t.params.huber_k = 1e6; // constant weights
+    let w = t.params.weights();
+    let (mut problem, _, _) = t.problem(&points).unwrap();
+    // Move the nodes off the identity so every Jacobian entry is exercised.
+    for (j, n) in problem.graph.deformation.nodes.iter_mut().enumerate() {
+        n.translation_m = Vector3::new(1e-5 * j as f64, -2e-5, 3e-5);
+        n.rotation[(0, 1)] += 1e-3 * (j % 3) as f64;
+    }
+    let t_wc = capsule_slam_framework::geometry::exp_se3(&nalgebra::Vector6::new(1e-4, -2e-4, 5e-5, 1e-3, 0.0, -2e-3));
+    let xi = nalgebra::Vector6::new(1e-4, 0.0, -1e-4, 1e-3, 2e-3, 0.0);
+    let mut layout = problem.layout(&w).unwrap();
+    let (g, _) = problem.linearise(&live, &t_wc, &xi, &w, &mut layout);
+    let a = dense(&layout.pattern);
+    // The same terms as dense rows: data rows recorded from the same residual code, the graph's
+    // rows from its visitor, the priors written out here.
+    let n = a.nrows();
+    let nodes = problem.graph.deformation.nodes.len();
+    let mut rows: Vec<(nalgebra::DVector<f64>, f64, f64)> = Vec::new();
+    for (p, binding) in &problem.points {
+        problem.point_terms(&live, &t_wc, &w, p, binding, &[0; 64], &mut |row: &super::system::Row<'_>, r, wt| {
+            let mut j = nalgebra::DVector::zeros(n);
+            for (k, entries) in row.nodes {
+                for (m, v) in entries.iter().enumerate() {
+                    j[12 * k + m] += v;
+                }
+            }
+            for c in 0..6 {
+                j[12 * nodes + c] = row.camera[c];
+            }
+            rows.push((j, r, wt));
+        });
+    }
+    let gw = crate::common::ed_graph::GraphWeights { rot: 1.0 / (w.sigma_rot * w.sigma_rot), reg: w.w_reg, con: 0.0, length_unit_m: w.sigma_reg_m, iterations: 1 };
+    problem.graph.visit(&gw, |r, entries| {
+        let mut j = nalgebra::DVector::zeros(n);
+        for &(u, v) in entries {
+            j[u] += v;
+        }
+        rows.push((j, r, 1.0));
+    });
+    let inv2 = |s: f64| if s > 0.0 { 1.0 / (s * s) } else { 0.0 };
+    for (k, node) in problem.graph.deformation.nodes.iter().enumerate() {
+        let off = node.position_m.coords + node.translation_m - problem.references[k];
+        for m in 0..9 {
+            let mut j = nalgebra::DVector::zeros(n);
+            j[12 * k + m] = 1.0;
+            let id = if m % 4 == 0 { 1.0 } else { 0.0 };
+            rows.push((j, node.rotation[(m % 3, m / 3)] - id, inv2(w.sigma_step_rot)));
+        }
+        for axis in 0..3 {
+            let mut j = nalgebra::DVector::zeros(n);
+            j[12 * k + 9 + axis] = 1.0;
+            rows.push((j.clone(), off[axis], inv2(w.sigma_rest_m)));
+            rows.push((j, node.translation_m[axis], inv2(w.sigma_step_m)));
+        }
+    }
+    for c in 0..6 {
+        let mut j = nalgebra::DVector::zeros(n);
+        j[12 * nodes + c] = 1.0;
+        rows.push((j, xi[c], if c < 3 { inv2(w.sigma_camera_m) } else { inv2(w.sigma_camera_rad) }));
+    }
+    let mut a_dense = nalgebra::DMatrix::<f64>::zeros(n, n);
+    let mut g_dense = nalgebra::DVector::<f64>::zeros(n);
+    for (j, r, wt) in &rows {
+        a_dense += *wt * j * j.transpose();
+        g_dense += *wt * *r * j;
+    }
+    // The assembly adds a 1e-9 Levenberg term per prior row on the diagonal.
+    let scale = a_dense.amax();
+    assert!((&a - &a_dense).amax() < 1e-9 * scale + 1e-7, "JᵀWJ differs by {:e} (scale {scale:e})", (&a - &a_dense).amax());
+    let g = nalgebra::DVector::from_vec(g);
+    assert!((&g - &g_dense).amax() < 1e-9 * g_dense.amax().max(1.0), "JᵀWr differs by {:e}", (&g - &g_dense).amax());
+}
+
+/// The eigenvalues of the problem's normal matrix at the rest wall seen as it is.
+fn eigenvalues(priors: bool) -> Vec<f64> {
+    let (mut t, points, live) = setup(CameraMode::Joint, 0.0);
+    t.params.w_rgb = 0.0;
+    if !priors {
+        (t.params.sigma_rest_m, t.params.sigma_step_m, t.params.sigma_step_rot, t.params.sigma_camera_m, t.params.sigma_camera_rad) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    }
+    let w = t.params.weights();
+    let (problem, _, _) = t.problem(&points).unwrap();
+    let mut layout = problem.layout(&w).unwrap();
+    problem.linearise(&live, &Iso3::identity(), &nalgebra::Vector6::zeros(), &w, &mut layout);
+    let mut e: Vec<f64> = dense(&layout.pattern).symmetric_eigenvalues().iter().copied().collect();
+    e.sort_by(f64::total_cmp);
+    e
+}
+
+#[test]
+fn without_priors_camera_and_warp_share_a_six_dimensional_null_space_and_the_priors_remove_it() {
+    let free = eigenvalues(false);
+    let largest = free[free.len() - 1];
+    // Six directions (one rigid motion of camera and nodes alike) cost next to nothing (the
+    // rotations not exactly nothing: live points sit up to half a pixel from the model points);
+    // the seventh is a real deformation, two orders of magnitude up.
+    assert!(free[5] < 1e-9 * largest, "6th eigenvalue {:e} of {largest:e}", free[5]);
+    assert!(free[6] > 100.0 * free[5], "7th eigenvalue {:e} against the 6th {:e}: more than 6 free directions", free[6], free[5]);
+    let anchored = eigenvalues(true);
+    assert!(anchored[0] > 10.0 * free[5] && anchored[0] > 1e6 * free[0], "with the priors the smallest is {:e}", anchored[0]);
+}
+
+#[test]
+fn bad_input_falls_back_without_a_panic() {
+    // No valid live pixel.
+    let (mut t, points, _) = setup(CameraMode::Joint, 0.0);
+    let empty = {
+        let prep = GeometryParams { min_m: 0.001, max_m: 1.0, radius_px: 0, sigma_px: 1.0, sigma_m: 1.0, edge_jump_m: 0.01 };
+        pyramid(DepthMap::new(160, 160), GrayF32::new(160, 160), (None, None), &cam(), 1, &prep).remove(0)
+    };
+    assert!(matches!(t.fit(&points, &empty, &Iso3::identity(), 1).unwrap(), Fit::Fallback(_)));
+    // NaN depth everywhere.
+    let nan = {
+        let prep = GeometryParams { min_m: 0.001, max_m: 1.0, radius_px: 0, sigma_px: 1.0, sigma_m: 1.0, edge_jump_m: 0.01 };
+        pyramid(DepthMap::from_fn(160, 160, |_, _| [f32::NAN]), GrayF32::new(160, 160), (None, None), &cam(), 1, &prep).remove(0)
+    };
+    assert!(matches!(t.fit(&points, &nan, &Iso3::identity(), 1).unwrap(), Fit::Fallback(_)));
+    // A degenerate graph: one node, no edges.
+    let (mut one, points, live) = setup(CameraMode::Joint, 0.0002);
+    one.nodes = nodes::Nodes::new(one.params.reach_m);
+    one.nodes.cover(&points[..1], one.params.node_spacing_m, 0, 1);
+    match one.fit(&points, &live, &Iso3::identity(), 1) {
+        Ok(Fit::Solved { warp, .. }) => assert!(warp.nodes.iter().all(|n| n.translation_m.iter().all(|v| v.is_finite()))),
+        Ok(Fit::Fallback(_)) | Err(_) => {}
+    }
+    // Model points with NaN positions bind no node.
+    let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None }; 10];
+    assert!(matches!(t.fit(&bad, &live, &Iso3::identity(), 1).unwrap(), Fit::Fallback(_)));
+}
