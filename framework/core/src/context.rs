@@ -15,6 +15,10 @@ pub struct StageReport {
     pub warnings: Vec<String>,
 }
 
+/// The counter a non-rigid tracker files its warp solver's time under (milliseconds); the
+/// runner writes it to `frames.csv` as `warp_solver_ms`.
+pub const WARP_SOLVER_MS: &str = "ms_warp_solver";
+
 /// Passed to every stage call.
 #[derive(Debug)]
 pub struct Context<'a> {

@@ -73,6 +73,28 @@ pub fn nearest_in_time<T>(sorted: &[T], t: f64, tolerance_s: f64, time: impl Fn(
         .map(|(j, _)| j)
 }
 
+/// The rigid motion G minimising `Σ w_i ‖G a_i − b_i‖²` (weighted Kabsch: Kabsch 1976,
+/// Umeyama 1991 without scale); `None` with fewer than 3 points, non-positive total weight or
+/// non-finite input.
+pub fn kabsch_weighted(a: &[nalgebra::Point3<f64>], b: &[nalgebra::Point3<f64>], w: &[f64]) -> Option<Iso3> {
+    if a.len() < 3 || a.len() != b.len() || a.len() != w.len() {
+        return None;
+    }
+    let total: f64 = w.iter().sum();
+    if total <= 0.0 || !total.is_finite() {
+        return None;
+    }
+    let ca = a.iter().zip(w).map(|(p, wi)| *wi * p.coords).sum::<Vector3<f64>>() / total;
+    let cb = b.iter().zip(w).map(|(p, wi)| *wi * p.coords).sum::<Vector3<f64>>() / total;
+    let cross: Matrix3<f64> = a.iter().zip(b).zip(w).map(|((p, q), wi)| *wi * (q.coords - cb) * (p.coords - ca).transpose()).sum();
+    if !cross.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let r = crate::deformation::orthonormalise(&cross);
+    let t = cb - r * ca;
+    Some(Iso3::from_parts(t.into(), UnitQuaternion::from_rotation_matrix(&r)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -128,26 +150,4 @@ mod tests {
         }
         assert!((exp_se3(&xi).to_homogeneous() - sum).norm() < 1e-12);
     }
-}
-
-/// The rigid motion G minimising `Σ w_i ‖G a_i − b_i‖²` (weighted Kabsch: Kabsch 1976,
-/// Umeyama 1991 without scale); `None` with fewer than 3 points, non-positive total weight or
-/// non-finite input.
-pub fn kabsch_weighted(a: &[nalgebra::Point3<f64>], b: &[nalgebra::Point3<f64>], w: &[f64]) -> Option<Iso3> {
-    if a.len() < 3 || a.len() != b.len() || a.len() != w.len() {
-        return None;
-    }
-    let total: f64 = w.iter().sum();
-    if !(total > 0.0) || !total.is_finite() {
-        return None;
-    }
-    let ca = a.iter().zip(w).map(|(p, wi)| *wi * p.coords).sum::<Vector3<f64>>() / total;
-    let cb = b.iter().zip(w).map(|(p, wi)| *wi * p.coords).sum::<Vector3<f64>>() / total;
-    let cross: Matrix3<f64> = a.iter().zip(b).zip(w).map(|((p, q), wi)| *wi * (q.coords - cb) * (p.coords - ca).transpose()).sum();
-    if !cross.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let r = crate::deformation::orthonormalise(&cross);
-    let t = cb - r * ca;
-    Some(Iso3::from_parts(t.into(), UnitQuaternion::from_rotation_matrix(&r)))
 }

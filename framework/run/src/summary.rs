@@ -120,6 +120,8 @@ pub struct FrameRow {
     pub tracker_iterations: usize,
     /// The tracker's warp of the map: mean and max node displacement, millimetres.
     pub warp_mm: Option<(f64, f64)>,
+    /// The tracker's warp solver time, milliseconds (its `ms_warp_solver` counter).
+    pub warp_solver_ms: Option<f64>,
     /// Every counter the stages reported, keyed `plugin.counter`.
     pub counters: BTreeMap<String, f64>,
 }
@@ -147,6 +149,7 @@ pub fn frame_row(r: &FrameRecord) -> FrameRow {
         depth_abs_rel: r.depth_abs_rel,
         tracker_iterations: r.tracker_iterations,
         warp_mm: r.warp_m.map(|(mean, max)| (mean * 1e3, max * 1e3)),
+        warp_solver_ms: r.reports.values().find_map(|rep| rep.counters.get(capsule_slam_framework::context::WARP_SOLVER_MS).copied()),
         counters: counters_of(r),
     }
 }

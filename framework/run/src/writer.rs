@@ -41,7 +41,7 @@ pub struct RunWriter {
 }
 
 /// Header of `frames.csv`.
-pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_depth,ms_track,ms_loop,ms_fuse,ms_predict,ms_total,surfels_total,surfels_active,surfels_added,surfels_merged,tracker_inliers,tracker_residual,loop_closure,depth_abs_rel,tracker_iterations,warp_mean_mm,warp_max_mm";
+pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_depth,ms_track,ms_loop,ms_fuse,ms_predict,ms_total,surfels_total,surfels_active,surfels_added,surfels_merged,tracker_inliers,tracker_residual,loop_closure,depth_abs_rel,tracker_iterations,warp_mean_mm,warp_max_mm,warp_solver_ms";
 
 impl RunWriter {
     /// Creates the folder and writes `config.toml`; opens the streamed files.
@@ -77,7 +77,7 @@ impl RunWriter {
         writeln!(self.trajectory, "{}", tum::format_pose(&r.pose)).and_then(|()| self.trajectory.flush()).map_err(|e| LoadError::io(&tp, e))?;
         let ms: Vec<String> = r.ms.iter().map(|(_, v)| format!("{v:.3}")).collect();
         let line = format!(
-            "{},{:.6},{},{},{:.3},{},{},{},{},{},{:.6e},{},{},{},{}",
+            "{},{:.6},{},{},{:.3},{},{},{},{},{},{:.6e},{},{},{},{},{}",
             r.index,
             r.pose.timestamp_s,
             r.status,
@@ -92,7 +92,8 @@ impl RunWriter {
             u8::from(r.loop_closure),
             r.depth_abs_rel.map(|a| format!("{a:.5}")).unwrap_or_default(),
             r.tracker_iterations,
-            r.warp_mm.map(|(mean, max)| format!("{mean:.4},{max:.4}")).unwrap_or_else(|| ",".to_owned())
+            r.warp_mm.map(|(mean, max)| format!("{mean:.4},{max:.4}")).unwrap_or_else(|| ",".to_owned()),
+            r.warp_solver_ms.map(|v| format!("{v:.3}")).unwrap_or_default()
         );
         let fp = self.dir.join("frames.csv");
         writeln!(self.frames, "{line}").and_then(|()| self.frames.flush()).map_err(|e| LoadError::io(&fp, e))?;

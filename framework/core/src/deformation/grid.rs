@@ -25,7 +25,7 @@ impl NodeGrid {
             lo = lo.inf(p);
             hi = hi.sup(p);
         }
-        if !(lo.x <= hi.x) {
+        if lo.x > hi.x {
             return Self { cell_m: reach_m, origin: Point3::origin(), dims: [0; 3], hoods: Vec::new() };
         }
         let extent = (hi - lo).max();

@@ -104,7 +104,7 @@ impl Tracker for Nonrigid {
         ctx.count("ms_nonrigid_points", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let outcome = self.solve(&points, &level, &rigid, now, ctx);
-        ctx.count("ms_nonrigid", clock.elapsed().as_secs_f64() * 1e3);
+        ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, clock.elapsed().as_secs_f64() * 1e3);
         match outcome {
             Ok(Some(result)) => {
                 if self.params.camera == CameraMode::Joint {

@@ -37,7 +37,7 @@ pub fn sample(model: &ModelView, cam: &PinholeCamera, previous_gray: Option<&Gra
         for x in (stride / 2..w).step_by(stride) {
             let z = f64::from(model.depth_m.at(x, y));
             let n = model.normals_cam.pixel(x, y);
-            if !(z > 0.0) || !z.is_finite() || n == [0.0; 3] {
+            if z <= 0.0 || !z.is_finite() || n == [0.0; 3] {
                 continue;
             }
             let n_cam = Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2]));
@@ -78,7 +78,7 @@ pub fn look(level: &Level, t_world_cam: &Iso3, x_world: &Point3<f64>) -> Option<
     let cam = &level.cam;
     let (w, h) = level.depth.size();
     let (uf, vf) = (cam.fx * q.x / q.z + cam.cx, cam.fy * q.y / q.z + cam.cy);
-    if !(uf >= -0.5 && vf >= -0.5) || !uf.is_finite() || !vf.is_finite() {
+    if !(uf >= -0.5 && vf >= -0.5 && uf.is_finite() && vf.is_finite()) {
         return None;
     }
     let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
