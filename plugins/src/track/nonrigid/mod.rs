@@ -139,6 +139,9 @@ pub(crate) enum Fit {
     },
     /// Why the rigid pose stands.
     Fallback(String),
+    /// The warp explained too little of the residual (the wall did not move measurably): the
+    /// rigid pose stands, no warp, and this is no failure.
+    Still,
 }
 
 impl Nonrigid {
@@ -148,6 +151,10 @@ impl Nonrigid {
             Fit::Fallback(why) => {
                 ctx.warn(format!("nonrigid: rigid pose kept, no warp: {why}"));
                 ctx.count("nonrigid_fallback", 1.0);
+                Ok(None)
+            }
+            Fit::Still => {
+                ctx.count("nonrigid_still", 1.0);
                 Ok(None)
             }
             Fit::Solved { t_world_cam, warp, outcome, nodes, points } => {
@@ -234,6 +241,20 @@ impl Nonrigid {
         }
         if max_step > p.max_step_m {
             return Ok(Fit::Fallback(format!("a node would move {:.2} mm in one frame (max_step_m {:.2} mm)", max_step * 1e3, p.max_step_m * 1e3)));
+        }
+        let moved = t_start.inverse() * outcome.t_world_cam;
+        let (shift, turn) = (moved.translation.vector.norm(), moved.rotation.angle());
+        if !(shift.is_finite() && turn.is_finite()) || shift > p.max_camera_step_m || turn > p.max_camera_step_rad {
+            return Ok(Fit::Fallback(format!(
+                "the joint solve would move the camera {:.2} mm / {:.2}° from the rigid start (max_camera_step_m {:.2} mm, max_camera_step_rad {:.3})",
+                shift * 1e3,
+                turn.to_degrees(),
+                p.max_camera_step_m * 1e3,
+                p.max_camera_step_rad
+            )));
+        }
+        if outcome.icp_rms_m > (1.0 - p.min_rms_gain) * outcome.icp_rms_first_m {
+            return Ok(Fit::Still);
         }
         for (s, &i) in solve_ids.iter().enumerate() {
             let (node, dn) = (&mut self.nodes.nodes[i], &d.nodes[s]);

@@ -21,7 +21,7 @@ pub enum CameraMode {
 capsule_slam_framework::plugin_params! {
     /// Parameters of `nonrigid`.
     pub struct NonrigidParams {
-        /// The rigid start: every `icp-rgb` parameter, as a table `[tracker.params.rigid]`.
+        /// The rigid start: every `icp-rgb` parameter, as a table `[plugins.nonrigid.rigid]`.
         pub rigid: IcpRgbParams = IcpRgbParams::default(); unit = "-";
         /// `joint` (camera and nodes) or `fixed` (nodes only, SurfelWarp).
         pub camera: CameraMode = CameraMode::Fixed; unit = "-";
@@ -87,6 +87,13 @@ capsule_slam_framework::plugin_params! {
         pub min_point_share: f64 = 0.3; unit = "-"; range = 0.0..=1.0;
         /// Fall back to rigid when a node would move more than this in one frame.
         pub max_step_m: f64 = 0.002; unit = "m"; range = 0.0..=1.0;
+        /// Fall back to rigid when the joint solve moves the camera farther than this from the rigid start.
+        pub max_camera_step_m: f64 = 0.001; unit = "m"; range = 0.0..=1.0;
+        /// The same for the camera's rotation.
+        pub max_camera_step_rad: f64 = 0.02; unit = "rad"; range = 0.0..=3.15;
+        /// Keep the map still unless the warp lowers the point-to-plane RMS by at least this share
+        /// (the rigid start's residual is then sensor noise, and a warp would fit the noise).
+        pub min_rms_gain: f64 = 0.1; unit = "-"; range = 0.0..=1.0;
         /// Most nodes (SurfelWarp: 4096).
         pub max_nodes: u32 = 4096; unit = "-"; range = 1.0..=1.0e6;
         /// Warp also with depth estimated from the image (shape from shading): its view-dependent

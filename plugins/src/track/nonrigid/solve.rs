@@ -83,6 +83,8 @@ pub struct Outcome {
     pub inliers: usize,
     /// RMS point-to-plane residual there, metres.
     pub icp_rms_m: f64,
+    /// RMS point-to-plane residual at the first linearisation (the rigid start), metres.
+    pub icp_rms_first_m: f64,
     /// Photometric residuals used there.
     pub rgb_n: usize,
     /// Symbolic analyses run (0: the previous one was reused).
@@ -174,6 +176,7 @@ impl<'a> Problem<'a> {
             iterations: 0,
             inliers: 0,
             icp_rms_m: f64::INFINITY,
+            icp_rms_first_m: f64::INFINITY,
             rgb_n: 0,
             analyses,
             ms_setup: ms(clock),
@@ -184,6 +187,9 @@ impl<'a> Problem<'a> {
             let clock = std::time::Instant::now();
             let (g, stats) = self.linearise(level, &t, &xi, w, &mut layout);
             (out.inliers, out.icp_rms_m, out.rgb_n) = stats;
+            if out.iterations == 0 {
+                out.icp_rms_first_m = stats.1;
+            }
             out.ms_assemble += ms(clock);
             let clock = std::time::Instant::now();
             let step = factor.solve(&layout.pattern, &g).map_err(solver_error)?;
