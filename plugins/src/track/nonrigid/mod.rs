@@ -22,6 +22,8 @@
 //! `reach_m` of every solved node stay where they are.
 
 mod energy;
+#[doc(hidden)]
+pub mod fixture;
 mod nodes;
 mod params;
 mod points;
