@@ -255,7 +255,12 @@ impl Nonrigid {
                 p.max_camera_step_rad
             )));
         }
-        if outcome.icp_rms_m > (1.0 - p.min_rms_gain) * outcome.icp_rms_first_m {
+        // Model selection: the warp must lower the residual by a share, and by more than its
+        // 12 unknowns per node would by fitting noise (the gain in χ² measured against the
+        // fitted residual, an AIC-like test with `min_evidence` per unknown).
+        let (r0, r1) = (outcome.icp_rms_first_m, outcome.icp_rms_m);
+        let gain_chi2 = outcome.inliers as f64 * ((r0 * r0) / (r1 * r1).max(1e-30) - 1.0);
+        if r1 > (1.0 - p.min_rms_gain) * r0 || gain_chi2 < p.min_evidence * (12 * solve_ids.len()) as f64 {
             return Ok(Fit::Still);
         }
         for (s, &i) in solve_ids.iter().enumerate() {

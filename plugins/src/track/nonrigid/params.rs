@@ -87,6 +87,9 @@ capsule_slam_framework::plugin_params! {
         pub min_point_share: f64 = 0.3; unit = "-"; range = 0.0..=1.0;
         /// Fall back to rigid when a node would move more than this in one frame.
         pub max_step_m: f64 = 0.002; unit = "m"; range = 0.0..=1.0;
+        /// Keep the map still unless the warp's drop in χ² (inliers × (RMS before² / RMS after² − 1))
+        /// exceeds this many per unknown (2: Akaike's criterion).
+        pub min_evidence: f64 = 2.0; unit = "-"; range = 0.0..=1000.0;
         /// Fall back to rigid when the joint solve moves the camera farther than this from the rigid start.
         pub max_camera_step_m: f64 = 0.001; unit = "m"; range = 0.0..=1.0;
         /// The same for the camera's rotation.
