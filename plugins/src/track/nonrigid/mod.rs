@@ -4,7 +4,7 @@
 //! `shared/design/nonrigid.md`).
 //!
 //! Per frame:
-//! 1. a rigid start: `icp-rgb` (every option of it, under `[tracker.params.rigid]`) against the
+//! 1. a rigid start: `icp-rgb` (every option of it, under `[plugins.nonrigid.rigid]`) against the
 //!    prediction of the map, which the previous frames' warps keep at the wall's last shape;
 //!    its loss detection is this tracker's;
 //! 2. embedded-deformation nodes cover the predicted surface (`node_spacing_m`, `nodes.rs`); the
@@ -14,8 +14,18 @@
 //!    smoothness terms (shared with the `deformation` loop closer), a rest-shape prior that
 //!    gives motion common to every node to the camera, a per-frame step prior and a camera prior
 //!    toward the rigid start; faer's sparse Cholesky, its analysis kept while the pattern holds;
-//! 4. a fallback to the rigid pose, without a warp, when too few model points find the live
-//!    wall, the solver fails, or a node would jump (each named in a warning).
+//! 4. model selection: the rigid motion common to the nodes is factored out of the warp (the
+//!    camera's to explain, OpenCV dynafu's `factorCommon`), and the warp is kept only when it
+//!    lowers the point-to-plane RMS by `min_rms_gain` and its χ² by more than `min_evidence` per
+//!    unknown (Akaike): a still wall is left still (counter `nonrigid_still`);
+//! 5. a fallback to the rigid pose, without a warp, when too few model points find the live
+//!    wall, the solver fails, a node would jump or the camera would leave the rigid start (each
+//!    named in a warning, counter `nonrigid_fallback`).
+//!
+//! With depth estimated from the image the warp is off (`warp_estimated_depth`): the tracker is
+//! then `icp-rgb` exactly. `camera = "joint"` (the camera an unknown of the warp solve, held by
+//! a prior toward the rigid start and the nodes' rest-shape prior) is experimental: on the
+//! phantom it loses track (`docs/results/nonrigid.md`).
 //!
 //! The warp goes out in [`TrackResult::warp`]: the pipeline applies it to the map (through the
 //! fuser) before fusion, so the frame fuses into the wall as it is now. Surfels beyond
