@@ -110,7 +110,7 @@ impl Tracker for Nonrigid {
         let now = ctx.frame_index as u32;
         let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, now, self.params.max_nodes as usize);
         if refused > 0 {
-            ctx.warn(format!("nonrigid: {refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
+            ctx.warn(format!("{refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
         }
         ctx.count("nonrigid_nodes_added", added as f64);
         ctx.count("ms_nonrigid_points", clock.elapsed().as_secs_f64() * 1e3);
@@ -126,7 +126,7 @@ impl Tracker for Nonrigid {
             }
             Ok(None) => Ok(rigid.clone()),
             Err(e) => {
-                ctx.warn(format!("nonrigid: rigid pose kept, no warp: {e}"));
+                ctx.warn(format!("rigid pose kept, no warp: {e}"));
                 ctx.count("nonrigid_fallback", 1.0);
                 Ok(rigid)
             }
@@ -161,7 +161,7 @@ impl Nonrigid {
     fn solve(&mut self, points: &[ModelPoint], level: &Level, rigid: &TrackResult, now: u32, ctx: &mut Context) -> Result<Option<TrackResult>, StageError> {
         match self.fit(points, level, &rigid.t_world_cam, now)? {
             Fit::Fallback(why) => {
-                ctx.warn(format!("nonrigid: rigid pose kept, no warp: {why}"));
+                ctx.warn(format!("rigid pose kept, no warp: {why}"));
                 ctx.count("nonrigid_fallback", 1.0);
                 Ok(None)
             }
