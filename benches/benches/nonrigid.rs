@@ -10,7 +10,7 @@ fn solve(c: &mut Criterion) {
     let mut group = c.benchmark_group("nonrigid-warp-solve");
     group.sample_size(10);
     for n in [64usize, 256, 1024, 4096] {
-        let mut case = SolverCase::new(n);
+        let mut case = SolverCase::new(n).unwrap_or_else(|e| panic!("{n} nodes: {e}"));
         assert!(case.solve(), "{n} nodes: the solve fell back");
         group.bench_with_input(BenchmarkId::from_parameter(case.nodes), &n, |b, _| b.iter(|| case.solve()));
     }

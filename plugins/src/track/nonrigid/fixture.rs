@@ -90,16 +90,16 @@ pub struct SolverCase {
 impl SolverCase {
     /// About `nodes` nodes on a 22 × 22 mm patch seen with a 0.3 mm wave (spacing from the
     /// count; ≥ 4 model points per node).
-    pub fn new(nodes: usize) -> Self {
+    pub fn new(nodes: usize) -> Result<Self, capsule_slam_framework::StageError> {
         let side_m = 0.0224;
         let spacing_m = side_m / (nodes.max(1) as f64).sqrt();
         let half = ((side_m / 2.0) / (spacing_m / 2.0)).ceil().max(14.0) as i32;
         let points: Vec<ModelPoint> = model_grid(0.0003, half, side_m / (2 * half) as f64).into_iter().map(|p| p.0).collect();
         let params = NonrigidParams { node_spacing_m: spacing_m, reach_m: 2.0 * spacing_m, max_edge_m: 3.0 * spacing_m, min_points_per_node: 1, min_rms_gain: 0.0, min_evidence: 0.0, ..Default::default() };
-        let mut tracker = Nonrigid::new(params).unwrap_or_else(|e| panic!("bench parameters: {e}"));
+        let mut tracker = Nonrigid::new(params)?;
         tracker.nodes.cover(&points, spacing_m, 0, 100_000);
         let nodes = tracker.nodes.nodes.len();
-        Self { tracker, points, live: level(0.0003), nodes }
+        Ok(Self { tracker, points, live: level(0.0003), nodes })
     }
 
     /// Binds, assembles and solves once (the tracker's nodes are reset so every call does the
