@@ -3,7 +3,7 @@
 //! A pose `t_a_b` maps coordinates in frame `b` to frame `a`: `p_a = t_a_b * p_b`. The camera
 //! pose of the paper's Eq. (1), `P_t = [R_t | t_t]`, is `t_world_cam`.
 
-use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 /// A rigid transform in double precision.
@@ -90,9 +90,27 @@ pub fn kabsch_weighted(a: &[nalgebra::Point3<f64>], b: &[nalgebra::Point3<f64>],
     if !cross.iter().all(|v| v.is_finite()) {
         return None;
     }
-    let r = crate::deformation::orthonormalise(&cross);
+    let r = orthonormalise(&cross);
     let t = cb - r * ca;
     Some(Iso3::from_parts(t.into(), UnitQuaternion::from_rotation_matrix(&r)))
+}
+
+/// The rotation nearest to `m` in the Frobenius norm (U Vᵀ of its SVD, with the sign fixed so
+/// that the determinant is +1).
+pub fn orthonormalise(m: &Matrix3<f64>) -> Rotation3<f64> {
+    let svd = m.svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => {
+            let mut r = u * v_t;
+            if r.determinant() < 0.0 {
+                let mut u2 = u;
+                u2.column_mut(2).neg_mut();
+                r = u2 * v_t;
+            }
+            Rotation3::from_matrix_unchecked(r)
+        }
+        _ => Rotation3::identity(),
+    }
 }
 
 #[cfg(test)]

@@ -14,9 +14,10 @@
 //! error is the camera's error when it was last seen (t), whenever it was created; timed by t,
 //! every surfel in the current view moves with the current camera.
 
-use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
 use crate::geometry::Iso3;
+pub use crate::geometry::orthonormalise;
 use crate::map::Surfel;
 
 mod grid;
@@ -337,24 +338,6 @@ impl Warper<'_> {
         }
         s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
         s.position_m = d.warp_with(&p, &infl).cast();
-    }
-}
-
-/// The rotation nearest to `m` in the Frobenius norm (U Vᵀ of its SVD, with the sign fixed so
-/// that the determinant is +1).
-pub fn orthonormalise(m: &Matrix3<f64>) -> Rotation3<f64> {
-    let svd = m.svd(true, true);
-    match (svd.u, svd.v_t) {
-        (Some(u), Some(v_t)) => {
-            let mut r = u * v_t;
-            if r.determinant() < 0.0 {
-                let mut u2 = u;
-                u2.column_mut(2).neg_mut();
-                r = u2 * v_t;
-            }
-            Rotation3::from_matrix_unchecked(r)
-        }
-        _ => Rotation3::identity(),
     }
 }
 

@@ -1,6 +1,7 @@
 //! Tests of the deformation: identity, weights, rigid motion, time windows, reach.
 
 use super::*;
+use nalgebra::Rotation3;
 use proptest::prelude::*;
 
 fn grid(k: usize) -> Deformation {
