@@ -7,8 +7,8 @@ use capsule_slam_framework::deformation::SurfelTime;
 use capsule_slam_framework::frame::{DepthSource, Masks};
 use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus};
 
-use crate::common::ed_graph::Constraint;
 use super::params::{DeformationParams, Reference};
+use crate::common::ed_graph::Constraint;
 use crate::track::icp_rgb::{IcpRgb, IcpRgbParams, MotionModel, RgbReference};
 
 /// The outcome of registering the active model to the inactive one.

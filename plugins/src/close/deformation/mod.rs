@@ -28,8 +28,8 @@ use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{LoopClosure, LoopInput};
 use capsule_slam_framework::{Context, Fuser, Iso3, LoopCloser, Plugin, StageError, Surfel, SurfelSet, register};
 
-use detect::{Registration, Sample, constraints, median_t0, register_models, samples};
 use crate::common::ed_graph::{Graph, GraphWeights};
+use detect::{Registration, Sample, constraints, median_t0, register_models, samples};
 pub use params::{DeformationParams, Freeze, PoseWarpKind, Reference, WindowUnit};
 
 /// The local loop closer.

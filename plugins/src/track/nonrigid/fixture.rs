@@ -77,7 +77,6 @@ fn model_grid(amp_m: f64, half: i32, step_m: f64) -> Vec<(ModelPoint, Point3<f64
     out
 }
 
-
 /// One solve of a given node count on the patch (the `nonrigid_solver` criterion bench).
 pub struct SolverCase {
     tracker: Nonrigid,
@@ -95,7 +94,15 @@ impl SolverCase {
         let spacing_m = side_m / (nodes.max(1) as f64).sqrt();
         let half = ((side_m / 2.0) / (spacing_m / 2.0)).ceil().max(14.0) as i32;
         let points: Vec<ModelPoint> = model_grid(0.0003, half, side_m / (2 * half) as f64).into_iter().map(|p| p.0).collect();
-        let params = NonrigidParams { node_spacing_m: spacing_m, reach_m: 2.0 * spacing_m, max_edge_m: 3.0 * spacing_m, min_points_per_node: 1, min_rms_gain: 0.0, min_evidence: 0.0, ..Default::default() };
+        let params = NonrigidParams {
+            node_spacing_m: spacing_m,
+            reach_m: 2.0 * spacing_m,
+            max_edge_m: 3.0 * spacing_m,
+            min_points_per_node: 1,
+            min_rms_gain: 0.0,
+            min_evidence: 0.0,
+            ..Default::default()
+        };
         let mut tracker = Nonrigid::new(params)?;
         tracker.nodes.cover(&points, spacing_m, 0, 100_000);
         let nodes = tracker.nodes.nodes.len();

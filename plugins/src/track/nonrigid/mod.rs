@@ -197,7 +197,8 @@ impl Nonrigid {
         let p = &self.params;
         let reach = p.reach_m;
         // Every node as a deformation (times 0, so the order is kept) to bind points.
-        let all = Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
+        let all =
+            Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
         let mut used = vec![0usize; all.nodes.len()];
         for q in points {
             for (i, _) in all.influences_among(&q.x_world_m, self.nodes.within(&q.x_world_m, reach).into_iter()) {
@@ -249,7 +250,11 @@ impl Nonrigid {
         }
         let (_, max_step) = d.node_displacement_m();
         if share < p.min_point_share || !outcome.icp_rms_m.is_finite() {
-            return Ok(Fit::Fallback(format!("{:.0} % of the model points found the live wall (min_point_share {:.0} %)", 100.0 * share, 100.0 * p.min_point_share)));
+            return Ok(Fit::Fallback(format!(
+                "{:.0} % of the model points found the live wall (min_point_share {:.0} %)",
+                100.0 * share,
+                100.0 * p.min_point_share
+            )));
         }
         if max_step > p.max_step_m {
             return Ok(Fit::Fallback(format!("a node would move {:.2} mm in one frame (max_step_m {:.2} mm)", max_step * 1e3, p.max_step_m * 1e3)));

@@ -87,9 +87,9 @@ pub fn look(level: &Level, t_world_cam: &Iso3, x_world: &Point3<f64>) -> Option<
     }
     let d = vertex(&level.vertices, ui, vi)?;
     let n = normal(&level.normals, ui, vi)?;
-    let gray = Bilinear::at(w, h, uf, vf).filter(|b| !b.corners(&level.gray).contains(&0.0)).map(|b| {
-        (f64::from(b.sample(&level.gray)), f64::from(b.sample(&level.gx)), f64::from(b.sample(&level.gy)))
-    });
+    let gray = Bilinear::at(w, h, uf, vf)
+        .filter(|b| !b.corners(&level.gray).contains(&0.0))
+        .map(|b| (f64::from(b.sample(&level.gray)), f64::from(b.sample(&level.gx)), f64::from(b.sample(&level.gy))));
     Some(LiveSample {
         p_world_m: t_world_cam * Point3::from(d.cast::<f64>()),
         n_world: t_world_cam.rotation * n.cast::<f64>(),

@@ -11,7 +11,18 @@ use crate::common::maps::GeometryParams;
 use crate::track::icp_rgb::frames::pyramid;
 
 fn tracker(camera: CameraMode) -> Nonrigid {
-    let params = NonrigidParams { camera, node_spacing_m: 0.004, reach_m: 0.008, max_edge_m: 0.012, iterations: 8, min_points_per_node: 4, sigma_step_m: 0.0, sigma_step_rot: 0.0, factor_common: false, ..Default::default() };
+    let params = NonrigidParams {
+        camera,
+        node_spacing_m: 0.004,
+        reach_m: 0.008,
+        max_edge_m: 0.012,
+        iterations: 8,
+        min_points_per_node: 4,
+        sigma_step_m: 0.0,
+        sigma_step_rot: 0.0,
+        factor_common: false,
+        ..Default::default()
+    };
     Nonrigid::new(params).unwrap()
 }
 
@@ -97,7 +108,8 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
             rows.push((j, r, wt));
         });
     }
-    let gw = crate::common::ed_graph::GraphWeights { rot: 1.0 / (w.sigma_rot * w.sigma_rot), reg: w.w_reg, con: 0.0, length_unit_m: w.sigma_reg_m, iterations: 1 };
+    let gw =
+        crate::common::ed_graph::GraphWeights { rot: 1.0 / (w.sigma_rot * w.sigma_rot), reg: w.w_reg, con: 0.0, length_unit_m: w.sigma_reg_m, iterations: 1 };
     problem.graph.visit(&gw, |r, entries| {
         let mut j = nalgebra::DVector::zeros(n);
         for &(u, v) in entries {
