@@ -104,7 +104,7 @@ impl SolverCase {
             ..Default::default()
         };
         let mut tracker = Nonrigid::new(params)?;
-        tracker.nodes.cover(&points, spacing_m, 0, 100_000);
+        tracker.nodes.cover(&points, spacing_m, 100_000);
         let nodes = tracker.nodes.nodes.len();
         Ok(Self { tracker, points, live: level(0.0003), nodes })
     }
@@ -113,7 +113,7 @@ impl SolverCase {
     /// same work); returns whether it solved.
     pub fn solve(&mut self) -> bool {
         let saved = self.tracker.nodes.clone();
-        let solved = matches!(self.tracker.fit(&self.points, &self.live, &Iso3::identity(), 1), Ok(Fit::Solved { .. }));
+        let solved = matches!(self.tracker.fit(&self.points, &self.live, &Iso3::identity()), Ok(Fit::Solved { .. }));
         self.tracker.nodes = saved;
         solved
     }

@@ -83,11 +83,6 @@ impl Nonrigid {
         params.check()?;
         Ok(Self { nodes: Nodes::new(params.reach_m), rigid: IcpRgb::new(params.rigid.clone()), params, cache: Cache::default() })
     }
-
-    /// The nodes' live and reference positions (for tests and outputs).
-    pub fn node_positions(&self) -> Vec<(nalgebra::Point3<f64>, nalgebra::Point3<f64>)> {
-        self.nodes.nodes.iter().map(|n| (n.position_m, n.reference_m)).collect()
-    }
 }
 
 impl Tracker for Nonrigid {
@@ -107,15 +102,14 @@ impl Tracker for Nonrigid {
         let clock = std::time::Instant::now();
         let cam = ctx.rig.camera().clone();
         let points = points::sample(model, &cam, previous_gray.as_ref(), self.params.point_stride_px as usize, self.params.max_incidence_rad);
-        let now = ctx.frame_index as u32;
-        let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, now, self.params.max_nodes as usize);
+        let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, self.params.max_nodes as usize);
         if refused > 0 {
             ctx.warn(format!("{refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
         }
         ctx.count("nonrigid_nodes_added", added as f64);
         ctx.count("ms_nonrigid_points", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
-        let outcome = self.solve(&points, &level, &rigid, now, ctx);
+        let outcome = self.solve(&points, &level, &rigid, ctx);
         ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, clock.elapsed().as_secs_f64() * 1e3);
         match outcome {
             Ok(Some(result)) => {
@@ -158,8 +152,8 @@ pub(crate) enum Fit {
 
 impl Nonrigid {
     /// The joint solve from the rigid result, with the counters and fallback warnings.
-    fn solve(&mut self, points: &[ModelPoint], level: &Level, rigid: &TrackResult, now: u32, ctx: &mut Context) -> Result<Option<TrackResult>, StageError> {
-        match self.fit(points, level, &rigid.t_world_cam, now)? {
+    fn solve(&mut self, points: &[ModelPoint], level: &Level, rigid: &TrackResult, ctx: &mut Context) -> Result<Option<TrackResult>, StageError> {
+        match self.fit(points, level, &rigid.t_world_cam)? {
             Fit::Fallback(why) => {
                 ctx.warn(format!("rigid pose kept, no warp: {why}"));
                 ctx.count("nonrigid_fallback", 1.0);
@@ -236,7 +230,7 @@ impl Nonrigid {
 
     /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
     /// the nodes near them; moves the nodes when it succeeds.
-    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3, now: u32) -> Result<Fit, StageError> {
+    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3) -> Result<Fit, StageError> {
         let Some((mut problem, solve_ids, used)) = self.problem(points) else {
             return Ok(Fit::Fallback("no node has enough model points".into()));
         };
@@ -282,7 +276,6 @@ impl Nonrigid {
             let (node, dn) = (&mut self.nodes.nodes[i], &d.nodes[s]);
             node.position_m += dn.translation_m;
             node.normal = d.warp_normal_with(&node.normal, &[(s, 1.0)]);
-            node.last_seen = now;
         }
         self.nodes.rebin();
         Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome })

@@ -21,8 +21,6 @@ pub struct Node {
     pub reference_m: Point3<f64>,
     /// Surface normal there, world frame.
     pub normal: Vector3<f64>,
-    /// Frame that last saw it.
-    pub last_seen: u32,
 }
 
 /// The nodes and a grid over their live positions.
@@ -64,7 +62,7 @@ impl Nodes {
     /// Adds a node at every model point with no node within `spacing_m` (the point's normal
     /// facing the same way), up to `max_nodes` in all; returns how many were added and how many
     /// were refused by the cap.
-    pub fn cover(&mut self, points: &[ModelPoint], spacing_m: f64, now: u32, max_nodes: usize) -> (usize, usize) {
+    pub fn cover(&mut self, points: &[ModelPoint], spacing_m: f64, max_nodes: usize) -> (usize, usize) {
         let (mut added, mut refused) = (0, 0);
         for p in points {
             let near = self.within(&p.x_world_m, spacing_m);
@@ -77,7 +75,7 @@ impl Nodes {
             }
             let c = self.cell(&p.x_world_m);
             self.cells.entry(c).or_default().push(self.nodes.len());
-            self.nodes.push(Node { position_m: p.x_world_m, reference_m: p.x_world_m, normal: p.n_world, last_seen: now });
+            self.nodes.push(Node { position_m: p.x_world_m, reference_m: p.x_world_m, normal: p.n_world });
             added += 1;
         }
         (added, refused)
@@ -105,20 +103,20 @@ mod tests {
     fn nodes_cover_a_sheet_at_the_spacing_and_not_twice() {
         let pts: Vec<ModelPoint> = (0..41).flat_map(|i| (0..41).map(move |j| point(i as f64 * 0.001, j as f64 * 0.001))).collect();
         let mut n = Nodes::new(0.016);
-        let (added, _) = n.cover(&pts, 0.008, 0, 4096);
+        let (added, _) = n.cover(&pts, 0.008, 4096);
         assert!((16..=60).contains(&added), "{added} nodes on a 40 mm sheet at 8 mm");
         // Every point has a node within the spacing; no two nodes are closer than it.
         assert!(pts.iter().all(|p| !n.within(&p.x_world_m, 0.008).is_empty()));
         for (i, a) in n.nodes.iter().enumerate() {
             assert!(n.nodes[i + 1..].iter().all(|b| (a.position_m - b.position_m).norm() > 0.008));
         }
-        assert_eq!(n.cover(&pts, 0.008, 1, 4096), (0, 0), "a covered surface gets no new nodes");
+        assert_eq!(n.cover(&pts, 0.008, 4096), (0, 0), "a covered surface gets no new nodes");
         // The opposite wall (normal the other way) at the same place gets its own nodes.
         let back: Vec<ModelPoint> = pts.iter().map(|p| ModelPoint { n_world: -p.n_world, ..*p }).collect();
-        assert_eq!(n.cover(&back, 0.008, 2, 4096).0, added);
+        assert_eq!(n.cover(&back, 0.008, 4096).0, added);
         // The cap refuses, and says so.
         let mut capped = Nodes::new(0.016);
-        let (a, r) = capped.cover(&pts, 0.008, 0, 5);
+        let (a, r) = capped.cover(&pts, 0.008, 5);
         assert_eq!((a, capped.nodes.len()), (5, 5));
         assert!(r > 0);
     }

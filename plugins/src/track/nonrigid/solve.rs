@@ -85,8 +85,6 @@ pub struct Outcome {
     pub icp_rms_m: f64,
     /// RMS point-to-plane residual at the first linearisation (the rigid start), metres.
     pub icp_rms_first_m: f64,
-    /// Photometric residuals used there.
-    pub rgb_n: usize,
     /// Symbolic analyses run (0: the previous one was reused).
     pub analyses: usize,
     /// Time building the pattern and the bindings' slots, ms.
@@ -151,8 +149,8 @@ impl<'a> Problem<'a> {
     }
 
     /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
-    /// camera departure `xi`; returns `JᵀWr` and (ICP inliers, ICP RMS, photometric count).
-    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, (usize, f64, usize)) {
+    /// camera departure `xi`; returns `JᵀWr` and (ICP inliers, ICP RMS).
+    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, (usize, f64)) {
         let (acc, stats) = self.accumulate(level, t, w, &layout.pattern, &layout.pair_ids);
         let mut g = layout.pattern.scatter(&acc);
         self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
@@ -177,7 +175,6 @@ impl<'a> Problem<'a> {
             inliers: 0,
             icp_rms_m: f64::INFINITY,
             icp_rms_first_m: f64::INFINITY,
-            rgb_n: 0,
             analyses,
             ms_setup: ms(clock),
             ms_assemble: 0.0,
@@ -186,7 +183,7 @@ impl<'a> Problem<'a> {
         for _ in 0..w.iterations {
             let clock = std::time::Instant::now();
             let (g, stats) = self.linearise(level, &t, &xi, w, &mut layout);
-            (out.inliers, out.icp_rms_m, out.rgb_n) = stats;
+            (out.inliers, out.icp_rms_m) = stats;
             if out.iterations == 0 {
                 out.icp_rms_first_m = stats.1;
             }
@@ -214,40 +211,39 @@ impl<'a> Problem<'a> {
         Ok(out)
     }
 
-    /// The data terms at pose `t`: the accumulator and (inliers, ICP RMS, photometric count),
+    /// The data terms at pose `t`: the accumulator and (inliers, ICP RMS),
     /// summed over four fixed chunks in order (the same sums on any thread count).
-    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, pair_ids: &[Vec<usize>]) -> (Accumulator, (usize, f64, usize)) {
+    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, pair_ids: &[Vec<usize>]) -> (Accumulator, (usize, f64)) {
         let chunk = self.points.len().div_ceil(4).max(1);
-        let parts: Vec<(Accumulator, usize, f64, usize)> = self
+        let parts: Vec<(Accumulator, usize, f64)> = self
             .points
             .par_chunks(chunk)
             .zip(pair_ids.par_chunks(chunk))
             .map(|(pts, ids)| {
                 let mut acc = pattern.accumulator();
-                let (mut n, mut sse, mut rgb) = (0usize, 0.0, 0usize);
+                let (mut n, mut sse) = (0usize, 0.0);
                 for ((p, binding), pairs) in pts.iter().zip(ids) {
-                    if let Some(r) = self.point_terms(level, t, w, p, binding, pairs, &mut |row, r, wt| acc.add(row, r, wt)) {
-                        n += r.0;
-                        sse += r.1;
-                        rgb += r.2;
+                    if let Some(r2) = self.point_terms(level, t, w, p, binding, pairs, &mut |row, r, wt| acc.add(row, r, wt)) {
+                        n += 1;
+                        sse += r2;
                     }
                 }
-                (acc, n, sse, rgb)
+                (acc, n, sse)
             })
             .collect();
         let mut total = pattern.accumulator();
-        let (mut n, mut sse, mut rgb) = (0, 0.0, 0);
-        for (a, pn, ps, pr) in &parts {
+        let (mut n, mut sse) = (0, 0.0);
+        for (a, pn, ps) in &parts {
             total.merge(a);
             n += pn;
             sse += ps;
-            rgb += pr;
         }
         let rms = if n == 0 { f64::INFINITY } else { (sse / n as f64).sqrt() };
-        (total, (n, rms, rgb))
+        (total, (n, rms))
     }
 
-    /// One point's residuals added to `acc`: (ICP inliers, squared ICP residual, photometric).
+    /// One point's residuals given to `sink`; the squared point-to-plane residual when the point
+    /// is an ICP inlier.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn point_terms(
         &self,
@@ -258,19 +254,19 @@ impl<'a> Problem<'a> {
         binding: &[(usize, f64)],
         pairs: &[usize],
         sink: &mut impl FnMut(&Row<'_>, f64, f64),
-    ) -> Option<(usize, f64, usize)> {
+    ) -> Option<f64> {
         let d = &self.graph.deformation;
         let warped = d.warp_with(&p.x_world_m, binding);
         let live = look(level, t, &warped)?;
         let mut rows: Vec<(usize, [f64; 12])> = Vec::with_capacity(binding.len());
-        let mut out = (0, 0.0, 0);
+        let mut icp_r2 = None;
         let close = (warped - live.p_world_m).norm() <= w.gate_m && p.n_world.dot(&live.n_world) >= w.cos_gate;
         if close {
             let r = data_residual(&p.n_world, &warped, &live.p_world_m);
             rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk))));
             let row = Row { nodes: &rows, pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
             sink(&row, r, huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m));
-            out = (1, r * r, 0);
+            icp_r2 = Some(r * r);
         }
         if w.w_rgb > 0.0
             && let (Some(reference), Some((i, gx, gy))) = (p.gray_ref, live.gray)
@@ -284,9 +280,8 @@ impl<'a> Problem<'a> {
             let r = i - reference;
             let row = Row { nodes: &rows, pairs, camera: photo_camera_row(&m, &warped) };
             sink(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
-            out.2 = 1;
         }
-        Some(out)
+        icp_r2
     }
 
     /// Adds the graph's `E_rot` and `E_reg` rows (slots in visiting order).

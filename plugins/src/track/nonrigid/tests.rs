@@ -41,8 +41,8 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
     let live = level(amp);
     for camera in [CameraMode::Fixed, CameraMode::Joint] {
         let mut t = tracker(camera);
-        t.nodes.cover(&points, t.params.node_spacing_m, 0, 4096);
-        let Fit::Solved { warp, t_world_cam, .. } = t.fit(&points, &live, &Iso3::identity(), 1).unwrap() else { panic!("fell back") };
+        t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+        let Fit::Solved { warp, t_world_cam, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("fell back") };
         let err = warp_error(&warp, &pts);
         assert!(err < 0.1e-3, "{camera:?}: warp error {:.4} mm (before {:.4} mm)", err * 1e3, before * 1e3);
         assert!(t_world_cam.translation.vector.norm() < 0.05e-3, "{camera:?}: the camera moved {:.4} mm", t_world_cam.translation.vector.norm() * 1e3);
@@ -69,7 +69,7 @@ fn dense(pattern: &super::system::Pattern) -> nalgebra::DMatrix<f64> {
 fn setup(camera: CameraMode, amp_m: f64) -> (Nonrigid, Vec<ModelPoint>, Level) {
     let points: Vec<ModelPoint> = model(amp_m).iter().map(|p| p.0).collect();
     let mut t = tracker(camera);
-    t.nodes.cover(&points, t.params.node_spacing_m, 0, 4096);
+    t.nodes.cover(&points, t.params.node_spacing_m, 4096);
     (t, points, level(amp_m))
 }
 
@@ -188,22 +188,22 @@ fn bad_input_falls_back_without_a_panic() {
         let prep = GeometryParams { min_m: 0.001, max_m: 1.0, radius_px: 0, sigma_px: 1.0, sigma_m: 1.0, edge_jump_m: 0.01 };
         pyramid(DepthMap::new(160, 160), GrayF32::new(160, 160), (None, None), &cam(), 1, &prep).remove(0)
     };
-    assert!(matches!(t.fit(&points, &empty, &Iso3::identity(), 1).unwrap(), Fit::Fallback(_)));
+    assert!(matches!(t.fit(&points, &empty, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
     // NaN depth everywhere.
     let nan = {
         let prep = GeometryParams { min_m: 0.001, max_m: 1.0, radius_px: 0, sigma_px: 1.0, sigma_m: 1.0, edge_jump_m: 0.01 };
         pyramid(DepthMap::from_fn(160, 160, |_, _| [f32::NAN]), GrayF32::new(160, 160), (None, None), &cam(), 1, &prep).remove(0)
     };
-    assert!(matches!(t.fit(&points, &nan, &Iso3::identity(), 1).unwrap(), Fit::Fallback(_)));
+    assert!(matches!(t.fit(&points, &nan, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
     // A degenerate graph: one node, no edges.
     let (mut one, points, live) = setup(CameraMode::Joint, 0.0002);
     one.nodes = nodes::Nodes::new(one.params.reach_m);
-    one.nodes.cover(&points[..1], one.params.node_spacing_m, 0, 1);
-    match one.fit(&points, &live, &Iso3::identity(), 1) {
+    one.nodes.cover(&points[..1], one.params.node_spacing_m, 1);
+    match one.fit(&points, &live, &Iso3::identity()) {
         Ok(Fit::Solved { warp, .. }) => assert!(warp.nodes.iter().all(|n| n.translation_m.iter().all(|v| v.is_finite()))),
         Ok(Fit::Fallback(_) | Fit::Still) | Err(_) => {}
     }
     // Model points with NaN positions bind no node.
     let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None }; 10];
-    assert!(matches!(t.fit(&bad, &live, &Iso3::identity(), 1).unwrap(), Fit::Fallback(_)));
+    assert!(matches!(t.fit(&bad, &live, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
 }
