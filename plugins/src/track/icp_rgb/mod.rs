@@ -251,6 +251,17 @@ impl IcpRgb {
         }
     }
 
+    /// Lends out the previous tracked live frame's pyramid (give it back with
+    /// [`IcpRgb::restore_previous`] before the next frame).
+    pub(crate) fn take_previous(&mut self) -> Option<Vec<Level>> {
+        self.previous.take()
+    }
+
+    /// Returns the pyramid [`IcpRgb::take_previous`] lent out.
+    pub(crate) fn restore_previous(&mut self, pyramid: Vec<Level>) {
+        self.previous = Some(pyramid);
+    }
+
     /// The previous tracked live frame's finest level (the photometric reference).
     pub(crate) fn previous_level0(&self) -> Option<&Level> {
         self.previous.as_ref().and_then(|p| p.first())

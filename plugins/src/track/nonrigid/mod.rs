@@ -88,29 +88,34 @@ impl Nonrigid {
 impl Tracker for Nonrigid {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
         let live = self.rigid.live_pyramid(frame, ctx);
-        let level = self.params.level.min(live.len() as u32 - 1) as usize;
-        let level = live[level].clone();
-        let previous_gray = self.rigid.previous_level0().map(|l| l.gray.clone());
-        let (rigid, _) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?;
-        let Some(model) = model else { return Ok(rigid) };
-        if rigid.status == TrackStatus::Lost {
-            return Ok(rigid);
-        }
-        if frame.depth_source == DepthSource::Estimated && !self.params.warp_estimated_depth {
-            return Ok(rigid);
-        }
+        let warps = frame.depth_source == DepthSource::Measured || self.params.warp_estimated_depth;
+        // The model points read the previous frame's intensity, which registering replaces.
         let clock = std::time::Instant::now();
-        let cam = ctx.rig.camera().clone();
-        let points = points::sample(model, &cam, previous_gray.as_ref(), self.params.point_stride_px as usize, self.params.max_incidence_rad);
+        let points = match (model, warps) {
+            (Some(m), true) => {
+                let reference = self.rigid.previous_level0().map(|l| &l.gray);
+                points::sample(m, ctx.rig.camera(), reference, self.params.point_stride_px as usize, self.params.max_incidence_rad)
+            }
+            _ => Vec::new(),
+        };
+        let ms_points = clock.elapsed().as_secs_f64() * 1e3;
+        let (rigid, _) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?;
+        if model.is_none() || !warps || rigid.status == TrackStatus::Lost {
+            return Ok(rigid);
+        }
+        // A tracked frame's pyramid is now the rigid tracker's previous frame: borrow it.
+        let Some(pyramid) = self.rigid.take_previous() else { return Ok(rigid) };
+        let level = &pyramid[(self.params.level as usize).min(pyramid.len() - 1)];
         let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, self.params.max_nodes as usize);
         if refused > 0 {
             ctx.warn(format!("{refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
         }
         ctx.count("nonrigid_nodes_added", added as f64);
-        ctx.count("ms_nonrigid_points", clock.elapsed().as_secs_f64() * 1e3);
+        ctx.count("ms_nonrigid_points", ms_points);
         let clock = std::time::Instant::now();
-        let outcome = self.solve(&points, &level, &rigid, ctx);
+        let outcome = self.solve(&points, level, &rigid, ctx);
         ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, clock.elapsed().as_secs_f64() * 1e3);
+        self.rigid.restore_previous(pyramid);
         match outcome {
             Ok(Some(result)) => {
                 if self.params.camera == CameraMode::Joint {
