@@ -70,10 +70,8 @@ impl Plugin for Nonrigid {
     const SUMMARY: &'static str = "camera pose and an embedded deformation of the active model per frame: rigid icp-rgb start, then joint point-to-plane + photometric + ARAP + rest-prior Gauss-Newton (faer sparse Cholesky)";
     type Params = NonrigidParams;
 
-    fn build(params: NonrigidParams, env: &BuildEnv) -> Result<Self, StageError> {
-        params.check()?;
-        let rigid = <IcpRgb as Plugin>::build(params.rigid.clone(), env)?;
-        Ok(Self { nodes: Nodes::new(params.reach_m), rigid, params, cache: Cache::default() })
+    fn build(params: NonrigidParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        Self::new(params)
     }
 }
 
