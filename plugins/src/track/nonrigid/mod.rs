@@ -228,7 +228,7 @@ impl Nonrigid {
             })
             .collect();
         let references = solve_ids.iter().map(|&i| self.nodes.nodes[i].reference_m.coords).collect();
-        Some((Problem { points: bound, graph, references, camera: p.camera == CameraMode::Joint }, solve_ids, used))
+        Some((Problem { points: bound, graph, references, normals, camera: p.camera == CameraMode::Joint }, solve_ids, used))
     }
 
     /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to

@@ -77,6 +77,10 @@ capsule_slam_framework::plugin_params! {
         pub sigma_rest_m: f64 = 0.005; unit = "m"; range = 0.0..=10.0;
         /// Per-frame node translation prior (the wall moves ≤ 0.21 mm per frame at 30 Hz). 0: off.
         pub sigma_step_m: f64 = 0.0005; unit = "m"; range = 0.0..=10.0;
+        /// Per-frame prior on a node's translation along its surface (a wave moves the wall along its
+        /// normal; a tube's axis and roll are near-null directions of point to plane, along which a
+        /// warp drifts on a still wall; `docs/results/nonrigid.md`). 0: off.
+        pub sigma_slide_m: f64 = 0.0; unit = "m"; range = 0.0..=10.0;
         /// Per-frame node R − I prior. 0: off.
         pub sigma_step_rot: f64 = 0.02; unit = "-"; range = 0.0..=10.0;
         /// Camera prior toward the rigid start, translation. 0: off.
@@ -138,6 +142,7 @@ impl NonrigidParams {
             sigma_rest_m: self.sigma_rest_m,
             sigma_step_m: self.sigma_step_m,
             sigma_step_rot: self.sigma_step_rot,
+            sigma_slide_m: self.sigma_slide_m,
             sigma_camera_m: self.sigma_camera_m,
             sigma_camera_rad: self.sigma_camera_rad,
             iterations: self.iterations as usize,

@@ -1,11 +1,13 @@
 //! One frame's joint Gauss-Newton solve of the camera pose and the node increments:
 //!
 //! `E = Σ ρ(r_icp/σ_icp)² + w_rgb Σ ρ(r_rgb/σ_rgb)² + E_rot/σ_rot² + w_reg E_reg/σ_reg²
-//!    + Σ ‖g_j + t_j − ĝ_j‖²/σ_rest² + Σ (‖t_j‖²/σ_step² + ‖R_j − I‖²/σ_rot_step²) + ‖ξ‖²_Σcam`
+//!    + Σ ‖g_j + t_j − ĝ_j‖²/σ_rest² + Σ (‖t_j‖²/σ_step² + ‖R_j − I‖²/σ_rot_step²)
+//!    + Σ ‖(I − n_j n_jᵀ) t_j‖²/σ_slide² + ‖ξ‖²_Σcam`
 //!
 //! (data terms: `energy.rs`; `E_rot`, `E_reg`: the ED graph of `crate::common::ed_graph`, Sumner
 //! et al. 2007 Eqs. (3)–(4); ĝ_j the node's reference position, the rest-shape prior that gives
-//! the motion common to all nodes to the camera (nonrigid.md §5); ξ the camera's departure from
+//! the motion common to all nodes to the camera (nonrigid.md §5); n_j the node's normal, the
+//! slide prior ours (off by default); ξ the camera's departure from
 //! the rigid start). Bindings of model points to nodes are fixed for the frame, correspondences
 //! are re-projected every iteration (SurfelWarp), full steps (no line search).
 
@@ -53,6 +55,8 @@ pub struct Weights {
     pub sigma_step_m: f64,
     /// Per-frame node R − I prior (0: off).
     pub sigma_step_rot: f64,
+    /// Per-frame prior on a node's translation along its surface (0: off).
+    pub sigma_slide_m: f64,
     /// Camera prior toward the rigid start: translation, metres (0: off).
     pub sigma_camera_m: f64,
     /// Camera prior: rotation, radians (0: off).
@@ -69,6 +73,8 @@ pub struct Problem<'a> {
     pub graph: Graph,
     /// Reference position of each solve node.
     pub references: Vec<Vector3<f64>>,
+    /// Unit surface normal at each solve node (the slide prior's tangent plane).
+    pub normals: Vec<Vector3<f64>>,
     /// Whether the camera is an unknown.
     pub camera: bool,
 }
@@ -102,6 +108,8 @@ pub(crate) struct Layout {
     pair_ids: Vec<Vec<usize>>,
     reg_slots: Vec<usize>,
     diag: Vec<usize>,
+    /// Per node, the slots of its translation block's lower triangle, (a, b) for b ≤ a, row major.
+    translation_slots: Vec<[usize; 6]>,
 }
 
 /// The pattern and factorisation kept between frames.
@@ -145,7 +153,21 @@ impl<'a> Problem<'a> {
             }
         });
         let diag: Vec<usize> = (0..pattern.unknowns()).map(|u| pattern.slot(u, u).unwrap_or(usize::MAX)).collect();
-        Ok(Layout { pattern, pair_ids, reg_slots, diag })
+        let translation_slots = (0..self.graph.deformation.nodes.len())
+            .map(|j| {
+                let base = UNKNOWNS * j + 9;
+                let mut s = [usize::MAX; 6];
+                let mut k = 0;
+                for a in 0..3 {
+                    for b in 0..=a {
+                        s[k] = pattern.slot(base + a, base + b).unwrap_or(usize::MAX);
+                        k += 1;
+                    }
+                }
+                s
+            })
+            .collect();
+        Ok(Layout { pattern, pair_ids, reg_slots, diag, translation_slots })
     }
 
     /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
@@ -155,6 +177,7 @@ impl<'a> Problem<'a> {
         let mut g = layout.pattern.scatter(&acc);
         self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
         self.add_priors(w, xi, &mut layout.pattern, &layout.diag, &mut g);
+        self.add_slide_prior(w, &mut layout.pattern, &layout.translation_slots, &mut g);
         (g, stats)
     }
 
@@ -330,6 +353,35 @@ impl<'a> Problem<'a> {
             for c in 0..6 {
                 let h = if c < 3 { inv2(w.sigma_camera_m) } else { inv2(w.sigma_camera_rad) };
                 add(base + c, h, h * xi[c]);
+            }
+        }
+    }
+}
+
+impl Problem<'_> {
+    /// Adds the slide prior: `‖(I − n nᵀ) t_j‖² / σ_slide²` per node, a per-frame step along the
+    /// surface. A wall moves mostly along its normal (a peristaltic wave is radial), while a
+    /// tube's axis and roll are near-null directions of point to plane: without this prior the
+    /// nodes slide along the tube and take the camera's motion with them.
+    fn add_slide_prior(&self, w: &Weights, pattern: &mut Pattern, slots: &[[usize; 6]], g: &mut [f64]) {
+        if w.sigma_slide_m <= 0.0 {
+            return;
+        }
+        let h = 1.0 / (w.sigma_slide_m * w.sigma_slide_m);
+        let vals = pattern.a.val_mut();
+        for (j, node) in self.graph.deformation.nodes.iter().enumerate() {
+            let n = self.normals[j];
+            let p = (Matrix3::identity() - n * n.transpose()) * h;
+            let grad = p * node.translation_m;
+            let mut k = 0;
+            for a in 0..3 {
+                g[UNKNOWNS * j + 9 + a] += grad[a];
+                for b in 0..=a {
+                    if slots[j][k] != usize::MAX {
+                        vals[slots[j][k]] += p[(a, b)];
+                    }
+                    k += 1;
+                }
             }
         }
     }

@@ -77,6 +77,7 @@ fn setup(camera: CameraMode, amp_m: f64) -> (Nonrigid, Vec<ModelPoint>, Level) {
 fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
     let (mut t, points, live) = setup(CameraMode::Joint, 0.0003);
     t.params.huber_k = 1e6; // constant weights
+    t.params.sigma_slide_m = 2e-4;
     let w = t.params.weights();
     let (mut problem, _, _) = t.problem(&points).unwrap();
     // Move the nodes off the identity so every Jacobian entry is exercised.
@@ -131,6 +132,16 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
             j[12 * k + 9 + axis] = 1.0;
             rows.push((j.clone(), off[axis], inv2(w.sigma_rest_m)));
             rows.push((j, node.translation_m[axis], inv2(w.sigma_step_m)));
+        }
+        // The slide prior: the translation's components along two tangents of the node normal.
+        let normal = problem.normals[k];
+        let t1 = normal.cross(&if normal.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
+        for tangent in [t1, normal.cross(&t1)] {
+            let mut j = nalgebra::DVector::zeros(n);
+            for axis in 0..3 {
+                j[12 * k + 9 + axis] = tangent[axis];
+            }
+            rows.push((j, tangent.dot(&node.translation_m), inv2(w.sigma_slide_m)));
         }
     }
     for c in 0..6 {
