@@ -57,7 +57,12 @@ pub fn run_bench(args: &BenchArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow:
         }
         let config = Config::load(None, &args.set)?;
         let dataset = Dataset::open(&dir, &config.input, None).with_context(|| format!("opening {}", dir.display()))?;
-        let mut pipeline = Pipeline::build(&config, "bench", &registry, &BuildEnv::new(dataset.rig(), Some(dir.clone())).with_gpu(gpu.clone()))?;
+        let mut pipeline = Pipeline::build(
+            &config,
+            "bench",
+            &registry,
+            &BuildEnv::new(dataset.rig(), Some(dir.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone()),
+        )?;
         let out = std::env::temp_dir().join(format!("capsule-slam-bench-{}", std::process::id()));
         let mut writer = RunWriter::create(&out, &pipeline.resolved_config().to_toml_string())?;
         let mut records: Vec<FrameRecord> = Vec::new();

@@ -42,7 +42,7 @@ pub fn run(args: &DepthEvalArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::R
         bail!("{} has no depth.txt: depth-eval needs ground-truth depth", args.input.display());
     }
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_gpu(gpu.clone());
+    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let mut pre = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     let Stage::DepthEstimator(mut depth) = crate::stages::build(&registry, &resolved, &env, &config.pipeline.depth)? else {
         bail!("{} is not a depth estimator", config.pipeline.depth)

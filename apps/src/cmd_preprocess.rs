@@ -46,7 +46,7 @@ pub fn run(args: &PreprocessArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::
     };
     let dataset = Dataset::open(&args.input, &config.input, camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_gpu(gpu.clone());
+    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let mut stages = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let rig = dataset.rig();

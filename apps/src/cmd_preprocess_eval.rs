@@ -71,7 +71,7 @@ pub fn run(args: &PreprocessEvalArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyh
     let light = capsule_slam_framework::files::read_light_file(&light_path)
         .with_context(|| format!("preprocess-eval needs the phantom's light model {}: run it on a `capsule-slam synth` folder", light_path.display()))?;
     let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_gpu(gpu.clone());
+    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let mut stages = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
     if stages.is_empty() {
         bail!("pipeline.preprocess is empty: nothing to evaluate");

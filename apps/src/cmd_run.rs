@@ -100,7 +100,7 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     if dataset.dropped_without_depth() > 0 {
         eprintln!("note: {} rgb frames have no depth image within {} s and are skipped", dataset.dropped_without_depth(), config.input.association_tolerance_s);
     }
-    let env = BuildEnv::new(dataset.rig(), Some(input.clone())).with_gpu(gpu.clone());
+    let env = BuildEnv::new(dataset.rig(), Some(input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let mut pipeline = Pipeline::build(&config, &source, &registry, &env)?;
     let out = config.output.dir.clone();
     let mut writer =

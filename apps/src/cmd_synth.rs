@@ -40,6 +40,12 @@ pub struct SynthArgs {
     /// Scale of the sensor noise (default: 1, preset 6: 5; 0 = none).
     #[arg(long)]
     pub noise: Option<f64>,
+    /// Error added to the depth the sensor reads: `none`, `smooth:R` (depth × (1 + R·F), F a
+    /// smooth unit-variance field drawn anew each frame; e.g. smooth:0.05) or `structured` (an
+    /// organ-scale structured-light sensor: σ = 0.2 m⁻¹·z², 1/8 px disparity steps, holes at
+    /// grazing walls and depth edges). The exact depth goes to `depth_clean/`.
+    #[arg(long = "depth-noise", value_name = "KIND", default_value = "none")]
+    pub depth_noise: capsule_slam_phantom::depth_noise::DepthNoise,
     /// Tissue texture: `tissue` or `none` (uniform albedo, for shape from shading).
     #[arg(long, default_value = "tissue")]
     pub texture: String,
@@ -79,6 +85,7 @@ impl SynthArgs {
         s.seed = self.seed;
         s.deform_mm = self.deform_mm;
         s.surface_every = self.surface_every;
+        s.depth_noise = self.depth_noise;
         if let Some(v) = self.specular {
             s.specular = v;
         }

@@ -12,7 +12,19 @@ use nalgebra::{Point3, Vector6};
 
 /// A tiny camera (48×40).
 pub fn camera() -> CameraFile {
-    CameraFile { width: 48, height: 40, fx: 40.0, fy: 40.0, cx: 23.5, cy: 19.5, depth_scale: 5000.0, distortion: None, fov_radius_px: None, baseline_m: None }
+    CameraFile {
+        width: 48,
+        height: 40,
+        fx: 40.0,
+        fy: 40.0,
+        cx: 23.5,
+        cy: 19.5,
+        depth_scale: 5000.0,
+        distortion: None,
+        fov_radius_px: None,
+        baseline_m: None,
+        depth_noise: None,
+    }
 }
 
 /// The ground-truth pose of frame `i`: a slow drift and turn.

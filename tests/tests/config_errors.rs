@@ -132,6 +132,7 @@ fn a_camera_override_is_validated() {
             distortion: None,
             fov_radius_px: Some(-2.0),
             baseline_m: None,
+            depth_noise: None,
         }),
         ..load(OK, &[]).unwrap()
     };

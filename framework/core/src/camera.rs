@@ -37,6 +37,10 @@ pub struct CameraFile {
     /// Stereo baseline in metres (right camera at +x); absent for a mono capsule.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub baseline_m: Option<f64>,
+    /// The depth's noise model, if the sensor's is known (without it `sensor` gives no σ, and
+    /// the trackers' own noise floors stand alone).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_noise: Option<crate::depth_noise::DepthNoiseModel>,
 }
 
 fn default_depth_scale() -> f64 {
@@ -84,6 +88,9 @@ impl CameraFile {
                 format!("baseline_m = {b} must be positive"),
                 "give the stereo baseline in metres, or remove the key for a mono rig",
             );
+        }
+        if let Some(n) = &self.depth_noise {
+            out.extend(n.problems(&format!("{prefix}depth_noise.")));
         }
         out
     }
@@ -347,8 +354,9 @@ mod tests {
             distortion: None,
             fov_radius_px: None,
             baseline_m: None,
+            depth_noise: Some(crate::depth_noise::DepthNoiseModel { absolute_m: -0.001, relative: 0.01, quadratic_per_m: 0.0 }),
         };
         let keys: Vec<_> = f.problems("camera.").into_iter().map(|p| p.key).collect();
-        assert_eq!(keys, vec!["camera.width", "camera.fx", "camera.cy"]);
+        assert_eq!(keys, vec!["camera.width", "camera.fx", "camera.cy", "camera.depth_noise.absolute_m"]);
     }
 }

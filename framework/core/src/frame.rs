@@ -247,6 +247,10 @@ pub struct RgbdFrame {
     pub depth_m: DepthMap,
     /// Per-pixel depth confidence in [0, 1], when the estimator gives one.
     pub depth_confidence: Option<GrayF32>,
+    /// Per-pixel σ of the depth, metres (0 where the depth is invalid), when the depth stage
+    /// knows its noise ([`crate::depth_noise`]): trackers weigh residuals and fusers measurements
+    /// by it. `None`: the trackers' own noise scales alone.
+    pub depth_sigma_m: Option<DepthMap>,
     /// Per-pixel albedo observed by the depth estimator (linear luminance; 0 = none), when it
     /// has a light model: what the fuser averages into each surfel's albedo.
     pub albedo: Option<GrayF32>,

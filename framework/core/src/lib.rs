@@ -30,6 +30,7 @@ pub mod config;
 pub mod context;
 pub mod deformation;
 pub mod depth_error;
+pub mod depth_noise;
 pub mod error;
 pub mod files;
 pub mod frame;

@@ -63,6 +63,8 @@ pub struct BuildEnv {
     pub rig: Rig,
     /// The input folder, for plugins that read calibration files beside the frames.
     pub input_dir: Option<PathBuf>,
+    /// The depth noise model `camera.toml` declares, if any (the `sensor` stage's σ).
+    pub depth_noise: Option<crate::depth_noise::DepthNoiseModel>,
     /// The application's GPU, for plugins that run on one (opened on their first request).
     #[cfg(feature = "gpu")]
     pub gpu: capsule_slam_gpu::GpuHandle,
@@ -75,9 +77,16 @@ impl BuildEnv {
         Self {
             rig,
             input_dir,
+            depth_noise: None,
             #[cfg(feature = "gpu")]
             gpu: capsule_slam_gpu::GpuHandle::new(),
         }
+    }
+
+    /// The same environment with the depth noise model of the input's `camera.toml`.
+    pub fn with_depth_noise(mut self, model: Option<crate::depth_noise::DepthNoiseModel>) -> Self {
+        self.depth_noise = model;
+        self
     }
 
     /// The same environment with the application's GPU.

@@ -29,6 +29,9 @@ pub struct DepthEstimate {
     pub depth_m: DepthMap,
     /// Confidence in [0, 1] per pixel, if the estimator has one.
     pub confidence: Option<GrayF32>,
+    /// σ of the depth per pixel, metres, if the estimator knows its noise
+    /// ([`crate::depth_noise`]).
+    pub sigma_m: Option<DepthMap>,
     /// Albedo per pixel (linear luminance; 0 = none): the observed radiance over the light
     /// model's irradiance on the estimated surface, if the estimator has a light model. The
     /// fuser averages it into the map, and the map's prediction gives it back
@@ -39,7 +42,7 @@ pub struct DepthEstimate {
 impl DepthEstimate {
     /// A depth map alone.
     pub fn depth_only(depth_m: DepthMap) -> Self {
-        Self { depth_m, confidence: None, albedo: None }
+        Self { depth_m, confidence: None, albedo: None, sigma_m: None }
     }
 }
 

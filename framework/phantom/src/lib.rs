@@ -7,6 +7,7 @@
 //! and shot noise, optional motion blur and a peristaltic wall motion. Seven camera paths
 //! mirror the paper's Table 3 ([`trajectory`]). Rendering is deterministic for a seed.
 
+pub mod depth_noise;
 pub mod render;
 pub mod shape;
 pub mod texture;
@@ -93,6 +94,9 @@ pub struct PhantomSpec {
     /// at the first, middle and last frame), for the live surface error.
     #[serde(default)]
     pub surface_every: usize,
+    /// The error added to the depth the sensor reads (the exact depth stays the ground truth).
+    #[serde(default)]
+    pub depth_noise: depth_noise::DepthNoise,
 }
 
 impl PhantomSpec {
@@ -112,6 +116,7 @@ impl PhantomSpec {
             distortion_k1: 0.0,
             frame_rate_hz: 30.0,
             surface_every: 0,
+            depth_noise: depth_noise::DepthNoise::None,
         }
     }
 
@@ -205,6 +210,7 @@ impl Phantom {
             distortion: (spec.distortion_k1 != 0.0).then_some([spec.distortion_k1, 0.0, 0.0, 0.0, 0.0]),
             fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
             baseline_m: None,
+            depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model()),
         }
     }
 

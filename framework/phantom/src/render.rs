@@ -35,10 +35,12 @@ pub struct RenderedFrame {
     pub specular: Mask,
     /// Ground-truth depth along z, metres (0 outside the field of view).
     pub depth_m: DepthMap,
+    /// The depth a sensor reads: `depth_m` with the spec's `depth_noise` (`depth_noise.rs`).
+    pub measured_depth_m: DepthMap,
 }
 
 impl RenderedFrame {
-    /// The frame as tracking and fusion see it: colour, exact depth, ground-truth pose, and the
+    /// The frame as tracking and fusion see it: colour, measured depth, ground-truth pose, and the
     /// out-of-view mask of `camera`'s round field of view (if any).
     pub fn to_rgbd(&self, camera: &capsule_slam_framework::camera::PinholeCamera) -> capsule_slam_framework::frame::RgbdFrame {
         let mut masks = capsule_slam_framework::frame::Masks::new();
@@ -52,8 +54,9 @@ impl RenderedFrame {
             index: self.index,
             timestamp_s: self.timestamp_s,
             colour: self.rgb.clone(),
-            depth_m: self.depth_m.clone(),
+            depth_m: self.measured_depth_m.clone(),
             depth_confidence: None,
+            depth_sigma_m: None,
             albedo: None,
             gt_t_world_cam: Some(self.t_world_cam),
             masks,
@@ -174,6 +177,7 @@ impl Phantom {
             diffuse: Rgb8::new(w, h),
             specular: Mask::new(w, h),
             depth_m: DepthMap::new(w, h),
+            measured_depth_m: DepthMap::new(0, 0),
         };
         for (y, Row { rgb, dif, spec, depth }) in rows.into_iter().enumerate() {
             out.rgb.data_mut()[y * w * 3..(y + 1) * w * 3].copy_from_slice(&rgb);
@@ -181,6 +185,7 @@ impl Phantom {
             out.specular.data_mut()[y * w..(y + 1) * w].copy_from_slice(&spec);
             out.depth_m.data_mut()[y * w..(y + 1) * w].copy_from_slice(&depth);
         }
+        out.measured_depth_m = self.spec.depth_noise.apply(&out.depth_m, &self.camera, self.spec.seed, i);
         out
     }
 

@@ -35,7 +35,8 @@ pub const SURFACE_SPACING_M: f64 = 0.0005;
 
 /// Renders and writes every frame of `phantom` into `dir`; calls `on_frame` after each.
 pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) + Sync)) -> Result<(), LoadError> {
-    for sub in ["rgb", "depth", "diffuse", "specular"] {
+    let clean = (phantom.spec.depth_noise != crate::depth_noise::DepthNoise::None).then_some("depth_clean");
+    for sub in ["rgb", "depth", "diffuse", "specular"].into_iter().chain(clean) {
         let d = dir.join(sub);
         std::fs::create_dir_all(&d).map_err(|e| LoadError::io(&d, e))?;
     }
@@ -53,7 +54,10 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
         mark_visible(phantom, &f, &surface, &seen);
         images::write_rgb(&dir.join(format!("rgb/{i:06}.png")), &f.rgb)?;
         images::write_rgb(&dir.join(format!("diffuse/{i:06}.png")), &f.diffuse)?;
-        images::write_depth(&dir.join(format!("depth/{i:06}.png")), &f.depth_m, 5000.0)?;
+        images::write_depth(&dir.join(format!("depth/{i:06}.png")), &f.measured_depth_m, 5000.0)?;
+        if phantom.spec.depth_noise != crate::depth_noise::DepthNoise::None {
+            images::write_depth(&dir.join(format!("depth_clean/{i:06}.png")), &f.depth_m, 5000.0)?;
+        }
         let mask = Gray8::from_fn(f.specular.width(), f.specular.height(), |x, y| [if f.specular.at(x, y) { 255 } else { 0 }]);
         images::write_gray(&dir.join(format!("specular/{i:06}.png")), &mask)?;
         on_frame(i);

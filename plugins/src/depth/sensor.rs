@@ -1,7 +1,12 @@
 //! `sensor`: the oracle depth estimator. Passes the frame's own depth through (an RGB-D
 //! camera's, or the phantom's ground truth), so that tracking and fusion can be measured
 //! without the error of shape from shading.
+//!
+//! With a depth noise model (`camera.toml`'s `depth_noise`; issue 17) every valid pixel also
+//! gets its σ, which the trackers and fusers weigh by. Without one the frame carries no σ: the
+//! trackers' own noise floors stand alone, as before the model existed.
 
+use capsule_slam_framework::depth_noise::DepthNoiseModel;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Context, DepthEstimate, DepthEstimator, Plugin, StageError, register};
 
@@ -21,6 +26,7 @@ capsule_slam_framework::plugin_params! {
 #[derive(Debug, Clone)]
 pub struct Sensor {
     params: SensorParams,
+    noise: Option<DepthNoiseModel>,
 }
 
 impl Plugin for Sensor {
@@ -28,9 +34,13 @@ impl Plugin for Sensor {
     const SUMMARY: &'static str = "oracle: the frame's own depth (RGB-D sensor or phantom ground truth), clipped to [min_depth_m, max_depth_m]";
     type Params = SensorParams;
 
-    fn build(params: SensorParams, _env: &BuildEnv) -> Result<Self, StageError> {
+    fn build(params: SensorParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", params.min_depth_m, "max_depth_m", params.max_depth_m)?;
-        Ok(Self { params })
+        let noise = env.depth_noise;
+        if let Some(p) = noise.and_then(|n| n.problems("camera.depth_noise.").into_iter().next()) {
+            return Err(StageError::invalid_input(format!("sensor: {}: {} ({})", p.key, p.message, p.fix)));
+        }
+        Ok(Self { params, noise })
     }
 }
 
@@ -60,7 +70,13 @@ impl DepthEstimator for Sensor {
         if valid == 0 {
             ctx.warn(format!("frame {}: no depth within [{lo}, {hi}] m", frame.index));
         }
-        Ok(DepthEstimate::depth_only(out))
+        let sigma = self.noise.map(|model| {
+            capsule_slam_framework::DepthMap::from_fn(out.width(), out.height(), |x, y| {
+                let z = out.at(x, y);
+                [if z > 0.0 { model.sigma_m(f64::from(z)) as f32 } else { 0.0 }]
+            })
+        });
+        Ok(DepthEstimate { sigma_m: sigma, ..DepthEstimate::depth_only(out) })
     }
 }
 

@@ -25,7 +25,9 @@ pub struct PixelMeasurement {
     pub z_live_m: f32,
     /// Its normal, camera frame.
     pub n_cam: Vector3<f32>,
-    /// `λ = ‖K⁻¹ [u v 1]ᵀ‖` of the pixel (the depth gate compares along the ray).
+    /// `λ = ‖K⁻¹ [u v 1]ᵀ‖` of the pixel (the depth gate compares along the ray), divided by
+    /// how far the pixel's depth σ widens the gate, `max(1, gate_sigmas · σ / depth_gate_m)`:
+    /// the one number both fusers' gates read, so the widening needs no change of theirs.
     pub lambda: f32,
     /// Unit ray through the pixel, camera frame.
     pub ray_unit: Vector3<f32>,
@@ -49,6 +51,13 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
     );
     let (v_raw, n_map) = (&g.v_raw, &g.normals);
     let (w, h) = g.raw.size();
+    let sigma = frame.depth_sigma_m.as_ref().filter(|s| {
+        let fits = s.size() == (w, h);
+        if !fits {
+            ctx.warn(format!("frame {}: the depth σ image is {:?} but the depth {w}×{h}: the fixed depth gate is used", frame.index, s.size()));
+        }
+        fits
+    });
     let step = p.subsample as usize;
     let phase = frame.index % step.max(1);
     let half_diag = cam.half_diagonal_px() as f32;
@@ -72,6 +81,7 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
                 let (Some(v), Some(n)) = (vertex(v_raw, x, y), normal(n_map, x, y)) else { continue };
                 let ray = Vector3::new((x as f32 - cam.cx as f32) / cam.fx as f32, (y as f32 - cam.cy as f32) / cam.fy as f32, 1.0);
                 let lambda = ray.norm();
+                let widen = sigma.map_or(1.0, |s| (p.gate_sigmas * s.at(x, y) / p.depth_gate_m).max(1.0));
                 let rho = ((x as f32 - cam.cx as f32).powi(2) + (y as f32 - cam.cy as f32).powi(2)).sqrt();
                 let m = Measurement {
                     position_m: t * Point3::from(v),
@@ -81,7 +91,7 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
                     radius_m: radius(v.z, f_mean, n.z),
                     albedo: albedo.map_or(0.0, |a| a.at(x, y)).max(0.0),
                 };
-                out.push(PixelMeasurement { x, y, m, z_live_m: v.z, n_cam: n, lambda, ray_unit: ray / lambda });
+                out.push(PixelMeasurement { x, y, m, z_live_m: v.z, n_cam: n, lambda: lambda / widen, ray_unit: ray / lambda });
             }
             out
         })
@@ -89,4 +99,39 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
         .collect();
     ctx.count("ms_maps", clock.elapsed().as_secs_f64() * 1e3);
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use capsule_slam_framework::context::StageReport;
+    use capsule_slam_framework::{Context, DepthMap};
+
+    use super::*;
+    use crate::testing::{phantom, rgbd, rig};
+
+    #[test]
+    fn the_depth_gate_widens_to_gate_sigmas_of_the_pixels_sigma() {
+        let ph = phantom(1, 300, 0.0);
+        let (rig, p) = (rig(&ph), SurfelParams::default());
+        let mut frame = rgbd(&ph, 20);
+        let t = frame.gt_t_world_cam.unwrap();
+        let mut r = StageReport::default();
+        let exact = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));
+        // σ 2 mm: the 2 mm gate becomes 6 mm, so λ (the gate's only reader) shrinks 3 ×; a σ of
+        // 0.1 mm leaves the gate alone.
+        for (sigma, widen) in [(0.002f32, 3.0f32), (0.0001, 1.0)] {
+            frame.depth_sigma_m = Some(DepthMap::from_fn(frame.depth_m.width(), frame.depth_m.height(), |_, _| [sigma]));
+            let noisy = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));
+            assert_eq!(noisy.len(), exact.len());
+            for (a, b) in exact.iter().zip(&noisy) {
+                assert!((a.lambda / b.lambda - widen).abs() < 1e-4, "λ {} against {}", a.lambda, b.lambda);
+                assert_eq!(a.m, b.m);
+            }
+        }
+        // A σ image of another size is left out with a warning.
+        frame.depth_sigma_m = Some(DepthMap::new(3, 3));
+        let odd = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));
+        assert_eq!(odd, exact);
+        assert!(r.warnings.iter().any(|w| w.contains("σ image")), "{:?}", r.warnings);
+    }
 }

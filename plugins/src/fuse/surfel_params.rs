@@ -15,6 +15,9 @@ capsule_slam_framework::plugin_params! {
         pub unstable_lifetime: u32 = 20; unit = "frames"; range = 1.0..=1.0e7;
         /// Association depth gate along the ray (ElasticFusion: 0.05 m, room scale).
         pub depth_gate_m: f32 = 0.002; unit = "m"; range = 0.0..=10.0;
+        /// Where the frame's depth carries a σ per pixel, the depth gate widens to this many σ
+        /// (issue 17: a 2 mm gate would turn every noisy measurement into a new surfel).
+        pub gate_sigmas: f32 = 3.0; unit = "-"; range = 0.0..=100.0;
         /// Association normal gate (ElasticFusion: 0.5 rad).
         pub normal_gate_rad: f32 = 0.5; unit = "rad"; range = 0.0..=3.15;
         /// Model normals with |n_z| below this skip the normal gate (ElasticFusion: 0.75).

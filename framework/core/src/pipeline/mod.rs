@@ -219,6 +219,7 @@ impl Pipeline {
             colour,
             depth_m: est.depth_m,
             depth_confidence: est.confidence,
+            depth_sigma_m: est.sigma_m,
             albedo: est.albedo,
             gt_t_world_cam: frame.gt_t_world_cam,
             masks: frame.masks,

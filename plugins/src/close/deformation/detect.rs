@@ -57,6 +57,7 @@ pub fn register_models(
         colour: active.colour.clone(),
         depth_m: active.depth_m.clone(),
         depth_confidence: None,
+        depth_sigma_m: None,
         albedo: None,
         gt_t_world_cam: None,
         masks: Masks::new(),
@@ -72,6 +73,8 @@ pub fn register_models(
         min_inlier_fraction: 0.0,
         max_residual_m: f64::MAX,
         max_jump_m: f64::MAX,
+        // The closer judges the pose's uncertainty itself (`max_std_m`, `max_std_rad`).
+        max_pose_sigma_m: f64::MAX,
         ..IcpRgbParams::default()
     });
     // The tracker's own counters and warnings stay in a scratch report: a rejected closure is

@@ -25,6 +25,8 @@ pub struct Level {
     pub gx: GrayF32,
     /// Intensity gradient along y, per pixel.
     pub gy: GrayF32,
+    /// σ of the depth per pixel, metres (live frames whose depth stage gave one).
+    pub sigma: Option<DepthMap>,
 }
 
 /// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
@@ -61,7 +63,7 @@ pub fn pyramid(
         let next_depth = half_depth(&depth, prep.edge_jump_m);
         let d = &depth;
         let next_gray = half_gray(&gray, |x, y| d.at(x, y) > 0.0);
-        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy });
+        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None });
         depth = next_depth;
         gray = next_gray;
     }
@@ -82,7 +84,17 @@ pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthP
     let g = geometry(frame, cam, &params);
     let mut gray = gray_from_rgb(&frame.colour);
     gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
-    pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep)
+    let mut out = pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep);
+    if let Some(sigma) = &frame.depth_sigma_m {
+        // Level l samples every 2^l-th pixel's σ: the mean of a 2 × 2 block of a spatially
+        // correlated error (a stereo or smooth error) is hardly better than one pixel.
+        for (l, level) in out.iter_mut().enumerate() {
+            let (w, h) = level.depth.size();
+            let step = 1usize << l;
+            level.sigma = Some(DepthMap::from_fn(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
+        }
+    }
+    out
 }
 
 /// The reference pyramid: the model prediction where it has a surface, the previous live

@@ -22,8 +22,11 @@ pub struct Weights {
     pub sigma_rgb: f64,
     /// Huber threshold, in noise scales.
     pub huber_k: f64,
-    /// ICP correspondence distance gate, metres.
+    /// ICP correspondence distance gate, metres (the least: see `gate_sigmas`).
     pub icp_gate_m: f64,
+    /// The ICP and photometric occlusion gates widen to this many σ of the residual where the
+    /// depth is noisier than the fixed gates allow.
+    pub gate_sigmas: f64,
     /// Cosine of the ICP normal-angle gate.
     pub icp_cos_gate: f64,
     /// Photometric occlusion gate on depth, metres.
@@ -87,6 +90,8 @@ pub struct System {
     pub icp_n: usize,
     /// Sum of squared ICP residuals, m².
     pub icp_sse: f64,
+    /// Sum of squared ICP residuals over their σ² (χ²).
+    pub icp_chi2: f64,
     /// Photometric pixels used.
     pub rgb_n: usize,
     /// Sum of squared intensity residuals.
@@ -97,7 +102,7 @@ pub struct System {
 
 impl System {
     fn zero() -> Self {
-        Self { a: Upper6::zero(), b: Vector6::zeros(), icp_n: 0, icp_sse: 0.0, rgb_n: 0, rgb_sse: 0.0, live_n: 0 }
+        Self { a: Upper6::zero(), b: Vector6::zeros(), icp_n: 0, icp_sse: 0.0, icp_chi2: 0.0, rgb_n: 0, rgb_sse: 0.0, live_n: 0 }
     }
 
     fn add(&mut self, o: &System) {
@@ -105,9 +110,17 @@ impl System {
         self.b += o.b;
         self.icp_n += o.icp_n;
         self.icp_sse += o.icp_sse;
+        self.icp_chi2 += o.icp_chi2;
         self.rgb_n += o.rgb_n;
         self.rgb_sse += o.rgb_sse;
         self.live_n += o.live_n;
+    }
+
+    /// Adds one residual `r` with row `j` and weight `wt`.
+    #[inline]
+    fn add_row(&mut self, j: &Vector6<f64>, r: f64, wt: f64) {
+        self.a.add_outer(j, wt);
+        self.b += wt * j * r;
     }
 
     /// The Gauss-Newton step `δ = −A⁻¹ b`, if A is positive definite.
@@ -118,6 +131,11 @@ impl System {
     /// RMS of the ICP residuals, metres.
     pub fn icp_rms(&self) -> f64 {
         if self.icp_n == 0 { f64::INFINITY } else { (self.icp_sse / self.icp_n as f64).sqrt() }
+    }
+
+    /// RMS of the ICP residuals in units of their own σ.
+    pub fn icp_rms_sigmas(&self) -> f64 {
+        if self.icp_n == 0 { f64::INFINITY } else { (self.icp_chi2 / self.icp_n as f64).sqrt() }
     }
 }
 
@@ -144,25 +162,28 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
                 // Nearest pixel; truncation after +0.5 rounds non-negative values without libm.
                 let inside = uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh;
                 let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+                // The residual's σ: the registration floor and the live depth's own σ.
+                let sigma_live = live.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(x, y)));
+                let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
                 if let Some(nl) = normal(&live.normals, x, y) {
                     sys.live_n += 1;
                     if inside && let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
                         let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
                         let nl_ref = t_ref_live.rotation * nl.cast::<f64>();
-                        if (s - d).norm() <= w.icp_gate_m && nl_ref.dot(&n) >= w.icp_cos_gate {
+                        if (s - d).norm() <= w.icp_gate_m.max(w.gate_sigmas * sigma) && nl_ref.dot(&n) >= w.icp_cos_gate {
                             let r = icp_residual(&s, &d, &n);
                             let j = icp_jacobian(&s, &n);
-                            let wt = huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m);
-                            sys.a.add_outer(&j, wt);
-                            sys.b += wt * j * r;
+                            let wt = huber(r / sigma, w.huber_k) / (sigma * sigma);
+                            sys.add_row(&j, r, wt);
                             sys.icp_n += 1;
                             sys.icp_sse += r * r;
+                            sys.icp_chi2 += (r / sigma) * (r / sigma);
                         }
                     }
                 }
                 if w.w_rgb > 0.0 && inside {
                     let zr = photo.depth.at(ui, vi);
-                    if zr <= 0.0 || (f64::from(zr) - s.z).abs() > w.rgb_depth_gate_m {
+                    if zr <= 0.0 || (f64::from(zr) - s.z).abs() > w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live) {
                         continue;
                     }
                     let Some(bl) = Bilinear::at(rw, rh, uf, vf) else { continue };
@@ -176,8 +197,7 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
                     let r = f64::from(ir) - f64::from(live.gray.at(x, y));
                     let j = rgb_jacobian(&s, (gx, gy), cam.fx, cam.fy);
                     let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
-                    sys.a.add_outer(&j, wt);
-                    sys.b += wt * j * r;
+                    sys.add_row(&j, r, wt);
                     sys.rgb_n += 1;
                     sys.rgb_sse += r * r;
                 }

@@ -105,6 +105,10 @@ capsule_slam_framework::plugin_params! {
         pub stride_l0: u32 = 2; unit = "px"; range = 1.0..=8.0;
         /// ICP correspondence distance gate (ElasticFusion: 0.10 m, room scale).
         pub icp_gate_m: f64 = 0.004; unit = "m"; range = 0.0..=10.0;
+        /// Where the frame's depth carries a σ per pixel (`sensor` with a noise model), the ICP and
+        /// photometric occlusion gates widen to this many σ of the residual (issue 17: a gate
+        /// tuned for exact depth would cut noisy depth's inliers, not its outliers).
+        pub gate_sigmas: f64 = 3.0; unit = "-"; range = 0.0..=100.0;
         /// ICP normal-angle gate (ElasticFusion: 20°).
         pub icp_angle_gate_rad: f64 = 0.35; unit = "rad"; range = 0.0..=3.15;
         /// Photometric occlusion gate on depth (ElasticFusion: 0.07 m, room scale).
@@ -129,12 +133,18 @@ capsule_slam_framework::plugin_params! {
         /// agrees with the map, not the pose: 0 (off) keeps tracking through the frames where
         /// they disagree (`docs/results/tracking.md`).
         pub min_inlier_fraction_estimated: f64 = 0.0; unit = "-"; range = 0.0..=1.0;
-        /// Lost if the ICP RMS residual exceeds this (measured depth).
+        /// Lost if the ICP RMS residual exceeds this (measured depth) at the noise floor
+        /// `sigma_icp_m`; with the frame's per-pixel σ the test is on the RMS in units of each
+        /// residual's σ, against `max_residual_m / sigma_icp_m` (5 σ): a frame is lost when its
+        /// residual is far above what its noise explains, not because its depth is noisy.
         pub max_residual_m: f64 = 0.0015; unit = "m"; range = 0.0..=10.0;
         /// Lost if the ICP RMS residual exceeds this (estimated depth).
         pub max_residual_estimated_m: f64 = 0.004; unit = "m"; range = 0.0..=10.0;
         /// Lost if the solution moves this far from the prior (ElasticFusion: 0.3 m, room scale).
         pub max_jump_m: f64 = 0.01; unit = "m"; range = 0.0..=100.0;
+        /// Lost if the pose is not constrained: the standard deviation of the camera's
+        /// translation along its worst direction (from the Gauss-Newton information) exceeds this.
+        pub max_pose_sigma_m: f64 = 0.002; unit = "m"; range = 0.0..=100.0;
     }
 }
 
@@ -205,6 +215,7 @@ impl IcpRgb {
             sigma_rgb: p.sigma_rgb,
             huber_k: p.huber_k,
             icp_gate_m: p.icp_gate_m,
+            gate_sigmas: p.gate_sigmas,
             icp_cos_gate: p.icp_angle_gate_rad.cos(),
             rgb_depth_gate_m: p.rgb_depth_gate_m,
             rgb_min_gradient: p.rgb_min_gradient,
@@ -304,13 +315,18 @@ impl IcpRgb {
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
-        let lost = inlier_share < noise.min_inlier_fraction || fin.icp_rms() > noise.max_residual_m || jump > self.params.max_jump_m;
+        let covariance = fin.a.full().try_inverse();
+        let pose_sigma_m = covariance.map_or(f64::INFINITY, |c| c.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt());
+        let why = self.verdict(&fin, &noise, inlier_share, jump, pose_sigma_m);
+        let lost = why.is_some();
+        ctx.count("pose_sigma_mm", pose_sigma_m * 1e3);
+        ctx.count("icp_rms_sigmas", fin.icp_rms_sigmas());
         ctx.count("icp_inliers", fin.icp_n as f64);
         ctx.count("rgb_pixels", fin.rgb_n as f64);
         ctx.count("inlier_share", inlier_share);
         ctx.count("iterations", f64::from(total_iters));
         let status = if lost {
-            ctx.warn(format!("tracking lost: {:.0} % inliers, residual {:.3} mm, jump {:.2} mm", 100.0 * inlier_share, fin.icp_rms() * 1e3, jump * 1e3));
+            ctx.warn(format!("tracking lost: {}", why.unwrap_or_default()));
             TrackStatus::Lost
         } else {
             self.velocity = Some(t);
@@ -322,11 +338,38 @@ impl IcpRgb {
             status,
             inliers: fin.icp_n,
             residual_rms: fin.icp_rms(),
-            covariance: fin.a.full().try_inverse(),
+            covariance,
             iterations: total_iters as usize,
             warp: None,
         };
         Ok((result, initial))
+    }
+
+    /// Why a solution is lost, if it is: too few inliers, a residual far above what the noise
+    /// explains (in units of each residual's σ, times the floor: exactly the RMS in metres when
+    /// the frame carries no σ), a jump from the prior, or a pose the data do not constrain.
+    fn verdict(&self, fin: &gn::System, noise: &DepthNoise, inlier_share: f64, jump: f64, pose_sigma_m: f64) -> Option<String> {
+        let residual_m = fin.icp_rms_sigmas() * noise.sigma_icp_m;
+        if inlier_share < noise.min_inlier_fraction {
+            Some(format!("{:.0} % of the live pixels are ICP inliers (min_inlier_fraction {:.0} %)", 100.0 * inlier_share, 100.0 * noise.min_inlier_fraction))
+        } else if !(residual_m <= noise.max_residual_m) {
+            Some(format!(
+                "ICP residual {:.2} σ (max_residual_m / sigma_icp_m = {:.2} σ; RMS {:.3} mm)",
+                fin.icp_rms_sigmas(),
+                noise.max_residual_m / noise.sigma_icp_m,
+                fin.icp_rms() * 1e3
+            ))
+        } else if jump > self.params.max_jump_m {
+            Some(format!("the pose jumps {:.2} mm from the prior (max_jump_m {:.2} mm)", jump * 1e3, self.params.max_jump_m * 1e3))
+        } else if !(pose_sigma_m <= self.params.max_pose_sigma_m) {
+            Some(format!(
+                "the pose is not constrained: σ {:.2} mm along its worst direction (max_pose_sigma_m {:.2} mm)",
+                pose_sigma_m * 1e3,
+                self.params.max_pose_sigma_m * 1e3
+            ))
+        } else {
+            None
+        }
     }
 
     /// Gauss-Newton on the pyramid from the coarsest level, starting at `prior` (Eqs. 2–4):

@@ -68,3 +68,107 @@ fn the_motion_prior_does_not_bias_a_static_camera() {
     assert!(e.translation.vector.norm() < 2e-5 && e.rotation.angle() < 1e-3, "{e:?}");
     let _ = Iso3::identity();
 }
+
+/// The live and reference pyramids of two phantom frames, the live one with a uniform depth σ.
+fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::frames::Level>) {
+    let ph = phantom(5, 300, 0.0);
+    let t = tracker(IcpRgbParams::default(), &ph);
+    let (a, mut b) = (rgbd(&ph, 60), rgbd(&ph, 61));
+    b.depth_sigma_m = sigma_live_m.map(|s| capsule_slam_framework::DepthMap::from_fn(b.depth_m.width(), b.depth_m.height(), |_, _| [s]));
+    let prep = t.prep();
+    let previous = super::frames::live(&a, &ph.camera, 3, &prep);
+    let reference = super::frames::reference(None, previous.first(), &ph.camera, 3, &prep).unwrap();
+    (super::frames::live(&b, &ph.camera, 3, &prep), reference)
+}
+
+#[test]
+fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
+    // σ = 1 mm as the tracker's floor alone, or as a 0.1 mm floor and the frame's own σ of
+    // √(1 − 0.01) mm: the same system, residual for residual.
+    let gap = exp_se3(&Vector6::new(3e-4, -2e-4, 5e-4, 0.002, 0.0, -0.001));
+    let t = |floor: f64| super::gn::Weights {
+        w_rgb: 0.0,
+        sigma_icp_m: floor,
+        sigma_rgb: 0.02,
+        huber_k: 1.345,
+        icp_gate_m: 0.004,
+        gate_sigmas: 3.0,
+        icp_cos_gate: 0.35f64.cos(),
+        rgb_depth_gate_m: 0.002,
+        rgb_min_gradient: 0.002,
+    };
+    let (live, reference) = levels(None);
+    let a = super::gn::accumulate(&live[1], &reference[1], &reference[1], &gap, &t(1e-3), 1);
+    let (live_s, _) = levels(Some((1e-6f32 - 1e-8).sqrt()));
+    let b = super::gn::accumulate(&live_s[1], &reference[1], &reference[1], &gap, &t(1e-4), 1);
+    assert!(a.icp_n > 500 && a.icp_n == b.icp_n, "inliers {} and {}", a.icp_n, b.icp_n);
+    assert!((a.icp_rms_sigmas() / b.icp_rms_sigmas() - 1.0).abs() < 1e-4, "{} σ against {} σ", a.icp_rms_sigmas(), b.icp_rms_sigmas());
+    let (ma, mb) = (a.a.full(), b.a.full());
+    assert!((ma - mb).norm() < 1e-4 * ma.norm(), "the normal equations differ");
+    // A frame 1.2 × as noisy (its 3 σ still inside the 4 mm gate): its residuals are 1/1.2 as
+    // many σ, and it weighs 1/1.2² (inside the Huber threshold) to 1/1.2 (outside) as much.
+    let (live_2, _) = levels(Some(1.2e-3));
+    let c = super::gn::accumulate(&live_2[1], &reference[1], &reference[1], &gap, &t(1e-9), 1);
+    assert_eq!(c.icp_n, a.icp_n);
+    assert!((c.icp_rms_sigmas() / a.icp_rms_sigmas() - 1.0 / 1.2).abs() < 1e-3, "{} σ against {} σ", c.icp_rms_sigmas(), a.icp_rms_sigmas());
+    let ratio = c.a.full().norm() / ma.norm();
+    assert!((1.0 / 1.44 - 0.01..=1.0 / 1.2 + 0.01).contains(&ratio), "a noisier frame weighs {ratio} as much");
+}
+
+/// Tracks `b` from `a` (exact), returns the result and the warnings.
+fn track_pair(
+    ph: &capsule_slam_phantom::Phantom,
+    a: &capsule_slam_framework::RgbdFrame,
+    b: &capsule_slam_framework::RgbdFrame,
+) -> (capsule_slam_framework::TrackResult, Vec<String>) {
+    let rig = rig(ph);
+    let mut t = tracker(IcpRgbParams::default(), ph);
+    let mut r = StageReport::default();
+    let ta = a.gt_t_world_cam.unwrap();
+    t.track(a, None, &ta, &mut Context::new(a.index, &rig, None, &mut r)).unwrap();
+    let mut r = StageReport::default();
+    let res = t.track(b, None, &ta, &mut Context::new(b.index, &rig, None, &mut r)).unwrap();
+    (res, r.warnings)
+}
+
+#[test]
+fn a_frame_with_no_valid_depth_is_lost_and_says_why() {
+    let ph = phantom(1, 300, 0.0);
+    let (a, mut b) = (rgbd(&ph, 50), rgbd(&ph, 51));
+    b.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.0);
+    let (res, warnings) = track_pair(&ph, &a, &b);
+    assert_eq!(res.status, TrackStatus::Lost);
+    assert!(warnings.iter().any(|w| w.contains("ICP inliers")), "{warnings:?}");
+}
+
+#[test]
+fn a_textureless_plane_seen_head_on_is_lost_as_unconstrained() {
+    let ph = phantom(1, 300, 0.0);
+    let mut a = rgbd(&ph, 50);
+    a.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.03);
+    a.colour.data_mut().iter_mut().for_each(|c| *c = 128);
+    let b = capsule_slam_framework::RgbdFrame { index: 51, ..a.clone() };
+    let (res, warnings) = track_pair(&ph, &a, &b);
+    assert_eq!(res.status, TrackStatus::Lost);
+    assert!(warnings.iter().any(|w| w.contains("not constrained")), "{warnings:?}");
+}
+
+#[test]
+fn a_frame_with_a_five_percent_smooth_depth_error_is_tracked_with_its_sigma() {
+    use capsule_slam_phantom::depth_noise::DepthNoise;
+    let ph = phantom(5, 300, 0.0);
+    let (a, mut b) = (rgbd(&ph, 100), rgbd(&ph, 101));
+    let noise = DepthNoise::Smooth { relative: 0.05 };
+    let model = noise.model();
+    b.depth_m = noise.apply(&b.depth_m, &ph.camera, 4, 101);
+    b.depth_sigma_m = Some(capsule_slam_framework::DepthMap::from_fn(b.depth_m.width(), b.depth_m.height(), |x, y| {
+        let z = b.depth_m.at(x, y);
+        [if z > 0.0 { model.sigma_m(f64::from(z)) as f32 } else { 0.0 }]
+    }));
+    let (res, warnings) = track_pair(&ph, &a, &b);
+    assert_eq!(res.status, TrackStatus::Tracked, "{warnings:?}");
+    let e = b.gt_t_world_cam.unwrap().inverse() * res.t_world_cam;
+    // Tracked, not accurately: 3.4 mm off on this pair (the open part of issue 17,
+    // docs/results/depth-noise.md); the bound catches a divergence.
+    assert!(e.translation.vector.norm() < 5e-3, "translation error {} mm", e.translation.vector.norm() * 1e3);
+}
