@@ -354,7 +354,7 @@ mod tests {
             distortion: None,
             fov_radius_px: None,
             baseline_m: None,
-            depth_noise: Some(crate::depth_noise::DepthNoiseModel { absolute_m: -0.001, relative: 0.01, quadratic_per_m: 0.0 }),
+            depth_noise: Some(crate::depth_noise::DepthNoiseModel { absolute_m: -0.001, relative: 0.01, quadratic_per_m: 0.0, correlation_px: 0.0 }),
         };
         let keys: Vec<_> = f.problems("camera.").into_iter().map(|p| p.key).collect();
         assert_eq!(keys, vec!["camera.width", "camera.fx", "camera.cy", "camera.depth_noise.absolute_m"]);

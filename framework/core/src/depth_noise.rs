@@ -23,6 +23,11 @@ pub struct DepthNoiseModel {
     /// stereo, σ_z = z² σ_d / (f b)).
     #[serde(default)]
     pub quadratic_per_m: f64,
+    /// Correlation length of the error, pixels of the full image (0: independent pixels). A
+    /// smooth error (stereo matching over windows, a learned estimator, a per-frame scale) moves
+    /// a whole neighbourhood alike: a tracker counts a block of this size as one measurement.
+    #[serde(default)]
+    pub correlation_px: f64,
 }
 
 impl DepthNoiseModel {
@@ -34,9 +39,12 @@ impl DepthNoiseModel {
     /// Every problem of the model, keys prefixed with `prefix` (e.g. `depth_noise.`).
     pub fn problems(&self, prefix: &str) -> Vec<ConfigProblem> {
         let mut out = Vec::new();
-        for (key, v, unit) in
-            [("absolute_m", self.absolute_m, "metres"), ("relative", self.relative, "a share of the depth"), ("quadratic_per_m", self.quadratic_per_m, "1/m")]
-        {
+        for (key, v, unit) in [
+            ("absolute_m", self.absolute_m, "metres"),
+            ("relative", self.relative, "a share of the depth"),
+            ("quadratic_per_m", self.quadratic_per_m, "1/m"),
+            ("correlation_px", self.correlation_px, "pixels"),
+        ] {
             if !(v.is_finite() && v >= 0.0) {
                 out.push(ConfigProblem::new(
                     format!("{prefix}{key}"),
@@ -62,16 +70,16 @@ mod tests {
 
     #[test]
     fn sigma_adds_the_three_terms() {
-        let m = DepthNoiseModel { absolute_m: 0.0002, relative: 0.01, quadratic_per_m: 0.2 };
+        let m = DepthNoiseModel { absolute_m: 0.0002, relative: 0.01, quadratic_per_m: 0.2, correlation_px: 0.0 };
         assert!((m.sigma_m(0.05) - (0.0002 + 0.0005 + 0.0005)).abs() < 1e-15);
     }
 
     #[test]
     fn negative_nan_and_all_zero_models_name_their_key() {
-        let bad = DepthNoiseModel { absolute_m: -1.0, relative: f64::NAN, quadratic_per_m: 0.0 };
+        let bad = DepthNoiseModel { absolute_m: -1.0, relative: f64::NAN, quadratic_per_m: 0.0, correlation_px: -2.0 };
         let keys: Vec<String> = bad.problems("depth_noise.").into_iter().map(|p| p.key).collect();
-        assert_eq!(keys, ["depth_noise.absolute_m", "depth_noise.relative"]);
-        let zero = DepthNoiseModel { absolute_m: 0.0, relative: 0.0, quadratic_per_m: 0.0 };
+        assert_eq!(keys, ["depth_noise.absolute_m", "depth_noise.relative", "depth_noise.correlation_px"]);
+        let zero = DepthNoiseModel { absolute_m: 0.0, relative: 0.0, quadratic_per_m: 0.0, correlation_px: 0.0 };
         assert_eq!(zero.problems("depth_noise.")[0].key, "depth_noise");
     }
 

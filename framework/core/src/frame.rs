@@ -251,6 +251,12 @@ pub struct RgbdFrame {
     /// knows its noise ([`crate::depth_noise`]): trackers weigh residuals and fusers measurements
     /// by it. `None`: the trackers' own noise scales alone.
     pub depth_sigma_m: Option<DepthMap>,
+    /// Correlation length of the depth error, pixels (0: independent pixels;
+    /// [`crate::depth_noise::DepthNoiseModel::correlation_px`]).
+    pub depth_sigma_correlation_px: f64,
+    /// What the preprocessors did to the colour image's photometry (a tracker that models the
+    /// light must not divide a fall-off out twice).
+    pub photometry: Photometry,
     /// Per-pixel albedo observed by the depth estimator (linear luminance; 0 = none), when it
     /// has a light model: what the fuser averages into each surfel's albedo.
     pub albedo: Option<GrayF32>,

@@ -32,6 +32,8 @@ pub struct DepthEstimate {
     /// σ of the depth per pixel, metres, if the estimator knows its noise
     /// ([`crate::depth_noise`]).
     pub sigma_m: Option<DepthMap>,
+    /// Correlation length of the depth error, pixels (0: independent pixels).
+    pub sigma_correlation_px: f64,
     /// Albedo per pixel (linear luminance; 0 = none): the observed radiance over the light
     /// model's irradiance on the estimated surface, if the estimator has a light model. The
     /// fuser averages it into the map, and the map's prediction gives it back
@@ -42,7 +44,7 @@ pub struct DepthEstimate {
 impl DepthEstimate {
     /// A depth map alone.
     pub fn depth_only(depth_m: DepthMap) -> Self {
-        Self { depth_m, confidence: None, albedo: None, sigma_m: None }
+        Self { depth_m, confidence: None, albedo: None, sigma_m: None, sigma_correlation_px: 0.0 }
     }
 }
 

@@ -65,14 +65,18 @@ impl FromStr for DepthNoise {
 }
 
 impl DepthNoise {
-    /// The σ(z) model of this error, written into the phantom's `camera.toml`: the PNG's
-    /// 0.2 mm steps (σ = 0.2 mm / √12) plus the added error.
-    pub fn model(&self) -> DepthNoiseModel {
+    /// The σ(z) model of this error for images `width_px` wide, written into the phantom's
+    /// `camera.toml`: the PNG's 0.2 mm steps (σ = 0.2 mm / √12) plus the added error, and the
+    /// smooth field's grid spacing as its correlation length.
+    pub fn model(&self, width_px: usize) -> DepthNoiseModel {
         let png = 0.2e-3 / 12f64.sqrt();
         match *self {
-            Self::None => DepthNoiseModel { absolute_m: png, relative: 0.0, quadratic_per_m: 0.0 },
-            Self::Smooth { relative } => DepthNoiseModel { absolute_m: png, relative, quadratic_per_m: 0.0 },
-            Self::Structured => DepthNoiseModel { absolute_m: png, relative: 0.0, quadratic_per_m: STRUCTURED_SIGMA_PER_M },
+            Self::None => DepthNoiseModel { absolute_m: png, relative: 0.0, quadratic_per_m: 0.0, correlation_px: 0.0 },
+            // The field's grid nodes are (width − 1) / 4 apart.
+            Self::Smooth { relative } => {
+                DepthNoiseModel { absolute_m: png, relative, quadratic_per_m: 0.0, correlation_px: width_px.saturating_sub(1) as f64 / 4.0 }
+            }
+            Self::Structured => DepthNoiseModel { absolute_m: png, relative: 0.0, quadratic_per_m: STRUCTURED_SIGMA_PER_M, correlation_px: 0.0 },
         }
     }
 

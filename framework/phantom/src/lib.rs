@@ -210,7 +210,7 @@ impl Phantom {
             distortion: (spec.distortion_k1 != 0.0).then_some([spec.distortion_k1, 0.0, 0.0, 0.0, 0.0]),
             fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
             baseline_m: None,
-            depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model()),
+            depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model(w as usize)),
         }
     }
 

@@ -57,6 +57,8 @@ impl RenderedFrame {
             depth_m: self.measured_depth_m.clone(),
             depth_confidence: None,
             depth_sigma_m: None,
+            depth_sigma_correlation_px: 0.0,
+            photometry: Default::default(),
             albedo: None,
             gt_t_world_cam: Some(self.t_world_cam),
             masks,

@@ -76,7 +76,8 @@ impl DepthEstimator for Sensor {
                 [if z > 0.0 { model.sigma_m(f64::from(z)) as f32 } else { 0.0 }]
             })
         });
-        Ok(DepthEstimate { sigma_m: sigma, ..DepthEstimate::depth_only(out) })
+        let sigma_correlation_px = self.noise.map_or(0.0, |m| m.correlation_px);
+        Ok(DepthEstimate { sigma_m: sigma, sigma_correlation_px, ..DepthEstimate::depth_only(out) })
     }
 }
 

@@ -220,6 +220,8 @@ impl Pipeline {
             depth_m: est.depth_m,
             depth_confidence: est.confidence,
             depth_sigma_m: est.sigma_m,
+            depth_sigma_correlation_px: est.sigma_correlation_px,
+            photometry: frame.photometry,
             albedo: est.albedo,
             gt_t_world_cam: frame.gt_t_world_cam,
             masks: frame.masks,

@@ -58,6 +58,8 @@ pub fn register_models(
         depth_m: active.depth_m.clone(),
         depth_confidence: None,
         depth_sigma_m: None,
+        depth_sigma_correlation_px: 0.0,
+        photometry: Default::default(),
         albedo: None,
         gt_t_world_cam: None,
         masks: Masks::new(),

@@ -280,7 +280,7 @@ impl DepthEstimator for NearLightSfs {
         if valid == 0 {
             ctx.warn(format!("frame {}: no pixel usable for shape from shading (all masked, saturated or too dark); the depth is empty", frame.index));
         }
-        Ok(DepthEstimate { depth_m: out.depth_m, confidence: Some(out.confidence), albedo: Some(out.albedo), sigma_m: None })
+        Ok(DepthEstimate { depth_m: out.depth_m, confidence: Some(out.confidence), albedo: Some(out.albedo), sigma_m: None, sigma_correlation_px: 0.0 })
     }
 }
 

@@ -197,7 +197,7 @@ impl DepthEstimator for TsaiShah {
         let max = e.data().iter().zip(valid.data()).filter(|(_, v)| **v).map(|(g, _)| *g).fold(0.0f32, f32::max);
         let empty = |ctx: &mut Context, why: &str| {
             ctx.warn(format!("frame {}: {why}; the depth is empty", frame.index));
-            Ok(DepthEstimate { depth_m: DepthMap::new(w, h), confidence: Some(GrayF32::new(w, h)), albedo: None, sigma_m: None })
+            Ok(DepthEstimate { depth_m: DepthMap::new(w, h), confidence: Some(GrayF32::new(w, h)), albedo: None, sigma_m: None, sigma_correlation_px: 0.0 })
         };
         if max <= 0.0 {
             return empty(ctx, "no lit pixel for shape from shading");
@@ -242,7 +242,7 @@ impl DepthEstimator for TsaiShah {
             conf.data_mut()[k] = (1.0 - res[k] / 0.2).clamp(0.0, 1.0) as f32;
         }
         ctx.count("valid_pixels", n);
-        Ok(DepthEstimate { depth_m: depth, confidence: Some(conf), albedo: None, sigma_m: None })
+        Ok(DepthEstimate { depth_m: depth, confidence: Some(conf), albedo: None, sigma_m: None, sigma_correlation_px: 0.0 })
     }
 }
 

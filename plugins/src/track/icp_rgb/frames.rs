@@ -27,6 +27,8 @@ pub struct Level {
     pub gy: GrayF32,
     /// σ of the depth per pixel, metres (live frames whose depth stage gave one).
     pub sigma: Option<DepthMap>,
+    /// Correlation length of the depth error, pixels of this level.
+    pub sigma_correlation_px: f64,
 }
 
 /// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
@@ -63,7 +65,7 @@ pub fn pyramid(
         let next_depth = half_depth(&depth, prep.edge_jump_m);
         let d = &depth;
         let next_gray = half_gray(&gray, |x, y| d.at(x, y) > 0.0);
-        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None });
+        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None, sigma_correlation_px: 0.0 });
         depth = next_depth;
         gray = next_gray;
     }
@@ -92,6 +94,7 @@ pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthP
             let (w, h) = level.depth.size();
             let step = 1usize << l;
             level.sigma = Some(DepthMap::from_fn(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
+            level.sigma_correlation_px = frame.depth_sigma_correlation_px / step as f64;
         }
     }
     out

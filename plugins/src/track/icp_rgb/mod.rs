@@ -32,6 +32,7 @@ mod terms;
 pub use terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
 
 use capsule_slam_framework::frame::DepthSource;
+use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Context, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, TrackStatus, Tracker, register};
 
@@ -113,6 +114,11 @@ capsule_slam_framework::plugin_params! {
         pub icp_angle_gate_rad: f64 = 0.35; unit = "rad"; range = 0.0..=3.15;
         /// Photometric occlusion gate on depth (ElasticFusion: 0.07 m, room scale).
         pub rgb_depth_gate_m: f64 = 0.002; unit = "m"; range = 0.0..=10.0;
+        /// The capsule's light model (relative to the input folder), which relights the live
+        /// intensity to where each point stands in the reference view (`gn.rs`: the light moves
+        /// with the camera; `docs/results/depth-noise.md`: ATE −18 to −42 % on exact depth). A
+        /// missing file is a warning and intensities are compared as they are; "": always so.
+        pub light_file: String = "light.toml".to_string(); unit = "path";
         /// Smallest reference gradient for the photometric term, intensity per pixel.
         pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
         /// Valid depth range: nearest (ElasticFusion: 0.3 m, room scale).
@@ -156,6 +162,34 @@ pub struct IcpRgb {
     previous: Option<Vec<Level>>,
     /// The last relative motion (previous camera → current camera frame).
     velocity: Option<Iso3>,
+    /// The capsule's light model, which relights the photometric term (`light_file`).
+    light: Option<LightModel>,
+    /// Whether the current frame is relit (a light model, and images with no fall-off divided
+    /// out), and whether the user has been told why not.
+    relight: bool,
+    told: bool,
+    /// Why no light model was loaded although `light_file` names one (told on the first frame).
+    missing: Option<String>,
+}
+
+/// The light model `light_file` names (relative to the input folder), or none with the reason
+/// when the file does not exist; a file that exists but does not parse is an error.
+fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<LightModel>, Option<String>), StageError> {
+    if light_file.is_empty() {
+        return Ok((None, None));
+    }
+    let path = env.input_dir.as_ref().map_or_else(|| std::path::PathBuf::from(light_file), |d| d.join(light_file));
+    if !path.exists() {
+        let why = format!(
+            "icp-rgb: no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
+            path.display()
+        );
+        return Ok((None, Some(why)));
+    }
+    let light = capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
+        StageError::invalid_input(format!("icp-rgb: light_file: {e}; fix the file, or set plugins.icp-rgb.light_file = \"\" to compare intensities unlit"))
+    })?;
+    Ok((Some(light), None))
 }
 
 /// How far the frame's depth is trusted, by its source (measured or estimated).
@@ -170,16 +204,24 @@ impl Plugin for IcpRgb {
     const SUMMARY: &'static str = "joint point-to-plane ICP + photometric Gauss-Newton on a 3-level pyramid against the predicted model (paper Eqs. 2-4)";
     type Params = IcpRgbParams;
 
-    fn build(params: IcpRgbParams, _env: &BuildEnv) -> Result<Self, StageError> {
+    fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
-        Ok(Self { params, previous: None, velocity: None })
+        let (light, missing) = load_light(&params.light_file, env)?;
+        Ok(Self { params, previous: None, velocity: None, light, relight: false, told: false, missing })
     }
 }
 
 impl IcpRgb {
     /// A tracker with no history (no previous frame, no velocity).
     pub fn new(params: IcpRgbParams) -> Self {
-        Self { params, previous: None, velocity: None }
+        Self { params, previous: None, velocity: None, light: None, relight: false, told: false, missing: None }
+    }
+
+    /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
+    /// [`Plugin::build`] loads it.
+    pub fn with_env(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
+        let (light, missing) = load_light(&params.light_file, env)?;
+        Ok(Self { light, missing, ..Self::new(params) })
     }
 
     fn prep(&self) -> DepthPrep {
@@ -247,9 +289,20 @@ impl IcpRgb {
     }
 
     /// The live frame's pyramid as this tracker prepares it (3 levels, finest first).
-    pub(crate) fn live_pyramid(&self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {
+    pub(crate) fn live_pyramid(&mut self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {
         let clock = std::time::Instant::now();
         let live = frames::live(frame, ctx.rig.camera(), LEVELS, &self.prep());
+        self.relight = self.light.is_some() && frame.photometry.divided.is_none();
+        if let Some(why) = self.missing.take() {
+            ctx.warn(why);
+        }
+        if self.light.is_some() && !self.relight && !self.told {
+            self.told = true;
+            ctx.warn(format!(
+                "icp-rgb: light_file {:?} is not used: a preprocessor divided a fall-off out of the images, so the photometric term compares them unlit",
+                self.params.light_file
+            ));
+        }
         ctx.count("ms_live_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         live
     }
@@ -310,7 +363,9 @@ impl IcpRgb {
         };
         let noise = self.depth_noise(depth_source);
         let w = self.weights(&noise);
-        let initial = initial.then(|| accumulate(&live[0], &reference[0], &photo[0], &prior, &w, self.params.stride_l0 as usize).icp_rms());
+        let initial = initial.then(|| {
+            accumulate(&live[0], &reference[0], &photo[0], &prior, &w, self.light.as_ref().filter(|_| self.relight), self.params.stride_l0 as usize).icp_rms()
+        });
         let (t, total_iters, fin) = self.coarse_to_fine(&live, &reference, photo, prior, &w);
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
@@ -384,7 +439,7 @@ impl IcpRgb {
         for level in (0..LEVELS).rev() {
             let stride = if level == 0 { stride_l0 } else { 1 };
             for _ in 0..iters[level] {
-                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, w, stride);
+                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, w, self.light.as_ref().filter(|_| self.relight), stride);
                 if level == 0 {
                     fin = Some(sys);
                 }
@@ -399,7 +454,7 @@ impl IcpRgb {
                 }
             }
         }
-        let fin = fin.unwrap_or_else(|| accumulate(&live[0], &reference[0], &photo[0], &t, w, stride_l0));
+        let fin = fin.unwrap_or_else(|| accumulate(&live[0], &reference[0], &photo[0], &t, w, self.light.as_ref().filter(|_| self.relight), stride_l0));
         (t, total_iters, fin)
     }
 }

@@ -70,8 +70,11 @@ impl Plugin for Nonrigid {
     const SUMMARY: &'static str = "camera pose and an embedded deformation of the active model per frame: rigid icp-rgb start, then joint point-to-plane + photometric + ARAP + rest-prior Gauss-Newton (faer sparse Cholesky)";
     type Params = NonrigidParams;
 
-    fn build(params: NonrigidParams, _env: &BuildEnv) -> Result<Self, StageError> {
-        Self::new(params)
+    fn build(params: NonrigidParams, env: &BuildEnv) -> Result<Self, StageError> {
+        let mut tracker = Self::new(params)?;
+        // The rigid start relights its photometric term with the input's light model.
+        tracker.rigid = IcpRgb::with_env(tracker.params.rigid.clone(), env)?;
+        Ok(tracker)
     }
 }
 
