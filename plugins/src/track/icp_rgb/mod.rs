@@ -181,7 +181,7 @@ fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<LightModel>, O
     let path = env.input_dir.as_ref().map_or_else(|| std::path::PathBuf::from(light_file), |d| d.join(light_file));
     if !path.exists() {
         let why = format!(
-            "icp-rgb: no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
+            "no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
             path.display()
         );
         return Ok((None, Some(why)));
@@ -299,7 +299,7 @@ impl IcpRgb {
         if self.light.is_some() && !self.relight && !self.told {
             self.told = true;
             ctx.warn(format!(
-                "icp-rgb: light_file {:?} is not used: a preprocessor divided a fall-off out of the images, so the photometric term compares them unlit",
+                "light_file {:?} is not used: a preprocessor divided a fall-off out of the images, so the photometric term compares them unlit",
                 self.params.light_file
             ));
         }
@@ -407,7 +407,7 @@ impl IcpRgb {
         let residual_m = fin.icp_rms_sigmas() * noise.sigma_icp_m;
         if inlier_share < noise.min_inlier_fraction {
             Some(format!("{:.0} % of the live pixels are ICP inliers (min_inlier_fraction {:.0} %)", 100.0 * inlier_share, 100.0 * noise.min_inlier_fraction))
-        } else if !(residual_m <= noise.max_residual_m) {
+        } else if residual_m.is_nan() || residual_m > noise.max_residual_m {
             Some(format!(
                 "ICP residual {:.2} σ (max_residual_m / sigma_icp_m = {:.2} σ; RMS {:.3} mm)",
                 fin.icp_rms_sigmas(),
@@ -416,7 +416,7 @@ impl IcpRgb {
             ))
         } else if jump > self.params.max_jump_m {
             Some(format!("the pose jumps {:.2} mm from the prior (max_jump_m {:.2} mm)", jump * 1e3, self.params.max_jump_m * 1e3))
-        } else if !(pose_sigma_m <= self.params.max_pose_sigma_m) {
+        } else if pose_sigma_m.is_nan() || pose_sigma_m > self.params.max_pose_sigma_m {
             Some(format!(
                 "the pose is not constrained: σ {:.2} mm along its worst direction (max_pose_sigma_m {:.2} mm)",
                 pose_sigma_m * 1e3,
