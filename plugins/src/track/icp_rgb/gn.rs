@@ -10,6 +10,7 @@ use super::frames::Level;
 use super::terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
+use capsule_slam_framework::GrayF32;
 use capsule_slam_framework::light::LightModel;
 
 /// Weights and gates of one system.
@@ -149,7 +150,15 @@ impl System {
 /// spot and vignetting; the albedo cancels). The light moves with the camera, so brightness
 /// constancy fails by ≈ 2 Δz / z between frames (11 % for 1.7 mm at 30 mm); the relit value is
 /// held fixed in the Jacobian (iteratively reweighted, as the depth of the residual is).
-pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &Iso3, w: &Weights, light: Option<&LightModel>, stride: usize) -> System {
+pub fn accumulate(
+    live: &Level,
+    reference: &Level,
+    photo: &Level,
+    t_ref_live: &Iso3,
+    w: &Weights,
+    light: Option<(&LightModel, &GrayF32)>,
+    stride: usize,
+) -> System {
     let (lw, lh) = live.depth.size();
     let (rw, rh) = reference.depth.size();
     let cam = &reference.cam;
@@ -201,7 +210,7 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
                     let i_live = f64::from(live.gray.at(x, y));
                     let predicted = match light {
                         None => i_live,
-                        Some(l) => match relit(l, live, (x, y), &v.cast::<f64>(), t_ref_live, (uf, vf), &s, i_live) {
+                        Some((l, albedo)) => match relit(l, live, albedo, (x, y), t_ref_live, (uf, vf), &s) {
                             Some(i) => i,
                             None => continue,
                         },
@@ -241,24 +250,26 @@ fn reference_sample(photo: &Level, (ui, vi): (usize, usize), (uf, vf): (f64, f64
     (gx * gx + gy * gy >= min_gradient * min_gradient).then_some((ir, gx, gy))
 }
 
-/// The live intensity `i_live` of pixel `px` (vertex `v`) relit to where the point stands in
-/// the reference view (`s`, at `(uf, vf)`): `encode(decode(i_live) · L_ref / L_live)`, L the
-/// light's linear response to a unit albedo. `None` where either side is unlit or has no normal.
-#[allow(clippy::too_many_arguments)]
-fn relit(
-    l: &LightModel,
-    live: &Level,
-    px: (usize, usize),
-    v: &Vector3<f64>,
-    t_ref_live: &Iso3,
-    uv_ref: (f64, f64),
-    s: &Vector3<f64>,
-    i_live: f64,
-) -> Option<f64> {
+/// The live level's intensity over the light's response at each pixel, `decode(I) / L_live`
+/// (the albedo up to the light's gain; 0 where the pixel has no surface or no light): the
+/// pose-free half of the relighting, once per frame.
+pub fn live_albedo(l: &LightModel, live: &Level) -> GrayF32 {
+    let (w, h) = live.depth.size();
+    GrayF32::from_fn_par(w, h, |x, y| {
+        let (Some(v), Some(n)) = (vertex(&live.vertices, x, y), normal(&live.normals, x, y)) else { return [0.0] };
+        let l_live = l.linear(&live.cam, x as f64, y as f64, 1.0, &nalgebra::Point3::from(v.cast::<f64>()), &n.cast::<f64>());
+        [if l_live > 1e-9 { (l.decode(f64::from(live.gray.at(x, y))) / l_live) as f32 } else { 0.0 }]
+    })
+}
+
+/// The live pixel `px` relit to where its point stands in the reference view (`s`, at
+/// `uv_ref`): `encode(albedo · L_ref)`, L the light's linear response to a unit albedo. `None`
+/// where either side is unlit or the pixel has no normal.
+fn relit(l: &LightModel, live: &Level, albedo: &GrayF32, px: (usize, usize), t_ref_live: &Iso3, uv_ref: (f64, f64), s: &Vector3<f64>) -> Option<f64> {
+    let a = f64::from(albedo.at(px.0, px.1));
     let nl = normal(&live.normals, px.0, px.1)?.cast::<f64>();
-    let l_live = l.linear(&live.cam, px.0 as f64, px.1 as f64, 1.0, &nalgebra::Point3::from(*v), &nl);
     let l_ref = l.linear(&live.cam, uv_ref.0, uv_ref.1, 1.0, &nalgebra::Point3::from(*s), &(t_ref_live.rotation * nl));
-    (l_live > 1e-9 && l_ref > 0.0).then(|| l.encode(l.decode(i_live) * l_ref / l_live))
+    (a > 0.0 && l_ref > 0.0).then(|| l.encode(a * l_ref))
 }
 
 #[cfg(test)]

@@ -34,7 +34,7 @@ pub use terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::registry::BuildEnv;
-use capsule_slam_framework::{Context, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, TrackStatus, Tracker, register};
+use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, TrackStatus, Tracker, register};
 
 use serde::{Deserialize, Serialize};
 
@@ -363,10 +363,11 @@ impl IcpRgb {
         };
         let noise = self.depth_noise(depth_source);
         let w = self.weights(&noise);
-        let initial = initial.then(|| {
-            accumulate(&live[0], &reference[0], &photo[0], &prior, &w, self.light.as_ref().filter(|_| self.relight), self.params.stride_l0 as usize).icp_rms()
-        });
-        let (t, total_iters, fin) = self.coarse_to_fine(&live, &reference, photo, prior, &w);
+        // The pose-free half of the relighting, per level (`gn::live_albedo`).
+        let albedo: Option<Vec<GrayF32>> = self.light.as_ref().filter(|_| self.relight).map(|l| live.iter().map(|lv| gn::live_albedo(l, lv)).collect());
+        let lit = |level: usize| self.light.as_ref().zip(albedo.as_ref()).map(|(l, a)| (l, &a[level]));
+        let initial = initial.then(|| accumulate(&live[0], &reference[0], &photo[0], &prior, &w, lit(0), self.params.stride_l0 as usize).icp_rms());
+        let (t, total_iters, fin) = self.coarse_to_fine(&live, &reference, photo, prior, &w, &lit);
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
@@ -430,7 +431,15 @@ impl IcpRgb {
     /// Gauss-Newton on the pyramid from the coarsest level, starting at `prior` (Eqs. 2–4):
     /// the pose increment, the iterations run and the last level-0 system, whose figures judge
     /// the result (ElasticFusion's convention).
-    fn coarse_to_fine(&self, live: &[Level], reference: &[Level], photo: &[Level], prior: Iso3, w: &Weights) -> (Iso3, u32, gn::System) {
+    fn coarse_to_fine<'a>(
+        &self,
+        live: &[Level],
+        reference: &[Level],
+        photo: &[Level],
+        prior: Iso3,
+        w: &Weights,
+        lit: &dyn Fn(usize) -> Option<(&'a LightModel, &'a GrayF32)>,
+    ) -> (Iso3, u32, gn::System) {
         let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
         let stride_l0 = self.params.stride_l0 as usize;
         let mut t = prior;
@@ -439,7 +448,7 @@ impl IcpRgb {
         for level in (0..LEVELS).rev() {
             let stride = if level == 0 { stride_l0 } else { 1 };
             for _ in 0..iters[level] {
-                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, w, self.light.as_ref().filter(|_| self.relight), stride);
+                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, w, lit(level), stride);
                 if level == 0 {
                     fin = Some(sys);
                 }
@@ -454,7 +463,7 @@ impl IcpRgb {
                 }
             }
         }
-        let fin = fin.unwrap_or_else(|| accumulate(&live[0], &reference[0], &photo[0], &t, w, self.light.as_ref().filter(|_| self.relight), stride_l0));
+        let fin = fin.unwrap_or_else(|| accumulate(&live[0], &reference[0], &photo[0], &t, w, lit(0), stride_l0));
         (t, total_iters, fin)
     }
 }

@@ -196,8 +196,9 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
         rgb_depth_gate_m: 0.002,
         rgb_min_gradient: 0.0,
     };
-    let rms = |light| {
-        let s = super::gn::accumulate(&live[0], &previous[0], &previous[0], &t_ref_live, &w, light, 1);
+    let albedo = super::gn::live_albedo(&ph.light, &live[0]);
+    let rms = |light: Option<&capsule_slam_framework::light::LightModel>| {
+        let s = super::gn::accumulate(&live[0], &previous[0], &previous[0], &t_ref_live, &w, light.map(|l| (l, &albedo)), 1);
         assert!(s.rgb_n > 10_000, "{} photometric pixels", s.rgb_n);
         (s.rgb_sse / s.rgb_n as f64).sqrt()
     };
