@@ -141,6 +141,10 @@ impl System {
     }
 }
 
+/// The light model and the live level's albedo (`live_albedo`) that relight the photometric
+/// term, or none.
+pub type Relight<'a> = Option<(&'a LightModel, &'a GrayF32)>;
+
 /// Accumulates the system of `t_ref_live` over every `stride`-th live pixel: ICP against
 /// `reference`, the photometric term against `photo` (both in the reference camera frame).
 ///
@@ -150,15 +154,7 @@ impl System {
 /// spot and vignetting; the albedo cancels). The light moves with the camera, so brightness
 /// constancy fails by ≈ 2 Δz / z between frames (11 % for 1.7 mm at 30 mm); the relit value is
 /// held fixed in the Jacobian (iteratively reweighted, as the depth of the residual is).
-pub fn accumulate(
-    live: &Level,
-    reference: &Level,
-    photo: &Level,
-    t_ref_live: &Iso3,
-    w: &Weights,
-    light: Option<(&LightModel, &GrayF32)>,
-    stride: usize,
-) -> System {
+pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &Iso3, w: &Weights, light: Relight<'_>, stride: usize) -> System {
     let (lw, lh) = live.depth.size();
     let (rw, rh) = reference.depth.size();
     let cam = &reference.cam;
