@@ -146,6 +146,8 @@ impl NonrigidParams {
             sigma_camera_m: self.sigma_camera_m,
             sigma_camera_rad: self.sigma_camera_rad,
             iterations: self.iterations as usize,
+            point_stride_px: f64::from(self.point_stride_px),
+            gate_sigmas: self.rigid.gate_sigmas,
         }
     }
 }

@@ -67,6 +67,8 @@ pub struct LiveSample {
     pub gray: Option<(f64, f64, f64)>,
     /// The live depth at the nearest pixel, metres.
     pub depth_m: f64,
+    /// The live depth's σ there, metres (0 when the frame carries none).
+    pub sigma_m: f64,
 }
 
 /// Samples the live level at the projection of `x_world` seen from `t_world_cam`.
@@ -96,5 +98,6 @@ pub fn look(level: &Level, t_world_cam: &Iso3, x_world: &Point3<f64>) -> Option<
         q_cam_m: q,
         gray,
         depth_m: f64::from(level.depth.at(ui, vi)),
+        sigma_m: level.sigma.as_ref().map_or(0.0, |s| f64::from(s.at(ui, vi))),
     })
 }

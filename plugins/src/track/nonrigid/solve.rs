@@ -63,6 +63,11 @@ pub struct Weights {
     pub sigma_camera_rad: f64,
     /// Gauss-Newton iterations.
     pub iterations: usize,
+    /// Model points every this many pixels (a depth error correlated over more pixels counts
+    /// once per correlated patch, as in `icp-rgb`).
+    pub point_stride_px: f64,
+    /// Gates widen to this many σ of the live depth (as `icp-rgb`'s `gate_sigmas`).
+    pub gate_sigmas: f64,
 }
 
 /// One frame's problem.
@@ -283,17 +288,22 @@ impl<'a> Problem<'a> {
         let live = look(level, t, &warped)?;
         let mut rows: Vec<(usize, [f64; 12])> = Vec::with_capacity(binding.len());
         let mut icp_r2 = None;
-        let close = (warped - live.p_world_m).norm() <= w.gate_m && p.n_world.dot(&live.n_world) >= w.cos_gate;
+        // σ of the residual (floor and live depth) for the gate and the Huber threshold; the
+        // weight counts a correlated patch of points once (`icp-rgb`'s `gn.rs`).
+        let sigma = (w.sigma_icp_m * w.sigma_icp_m + live.sigma_m * live.sigma_m).sqrt();
+        let correlated = (level.sigma_correlation_px / w.point_stride_px).max(1.0).powi(2);
+        let sigma_w2 = w.sigma_icp_m * w.sigma_icp_m + live.sigma_m * live.sigma_m * correlated;
+        let close = (warped - live.p_world_m).norm() <= w.gate_m.max(w.gate_sigmas * sigma) && p.n_world.dot(&live.n_world) >= w.cos_gate;
         if close {
             let r = data_residual(&p.n_world, &warped, &live.p_world_m);
             rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk))));
             let row = Row { nodes: &rows, pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
-            sink(&row, r, huber(r / w.sigma_icp_m, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m));
+            sink(&row, r, huber(r / sigma, w.huber_k) / sigma_w2);
             icp_r2 = Some(r * r);
         }
         if w.w_rgb > 0.0
             && let (Some(reference), Some((i, gx, gy))) = (p.gray_ref, live.gray)
-            && (live.depth_m - live.q_cam_m.z).abs() <= w.rgb_depth_gate_m
+            && (live.depth_m - live.q_cam_m.z).abs() <= w.rgb_depth_gate_m.max(w.gate_sigmas * live.sigma_m)
             && gx * gx + gy * gy >= w.rgb_min_gradient * w.rgb_min_gradient
         {
             let a = image_gradient_cam(&live.q_cam_m, (gx, gy), level.cam.fx, level.cam.fy);

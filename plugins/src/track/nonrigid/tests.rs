@@ -218,3 +218,30 @@ fn bad_input_falls_back_without_a_panic() {
     let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None }; 10];
     assert!(matches!(t.fit(&bad, &live, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
 }
+
+#[test]
+fn a_points_weight_follows_the_live_depths_sigma_and_its_correlation() {
+    let (t, points, mut live) = setup(CameraMode::Fixed, 0.0003);
+    let mut w = t.params.weights();
+    w.w_rgb = 0.0; // point-to-plane rows only
+    let (problem, _, _) = t.problem(&points).unwrap();
+    let t_wc = Iso3::identity();
+    let sigma_live = 1e-3;
+    let (width, height) = live.depth.size();
+    live.sigma = Some(DepthMap::from_fn(width, height, |_, _| [sigma_live as f32]));
+    // Independent pixels (correlation 0), then an error alike over 8 px with points 4 px apart:
+    // four points per patch, so each weighs as if its σ² were four times the live one.
+    for (correlation_px, count) in [(0.0, 1.0), (8.0, 4.0)] {
+        live.sigma_correlation_px = correlation_px;
+        let mut rows = 0;
+        for (p, binding) in &problem.points {
+            problem.point_terms(&live, &t_wc, &w, p, binding, &[0; 64], &mut |_, r, wt| {
+                let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
+                let expected = crate::track::icp_rgb::huber(r / sigma, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m + count * sigma_live * sigma_live);
+                assert!((wt / expected - 1.0).abs() < 1e-5, "weight {wt} against {expected}");
+                rows += 1;
+            });
+        }
+        assert!(rows > 100, "{rows} point-to-plane rows");
+    }
+}
