@@ -83,6 +83,12 @@ impl BuildEnv {
         }
     }
 
+    /// A calibration file named in a plugin's parameters: relative to the input folder when
+    /// there is one, else as given.
+    pub fn input_file(&self, name: &str) -> PathBuf {
+        self.input_dir.as_ref().map_or_else(|| PathBuf::from(name), |dir| dir.join(name))
+    }
+
     /// The same environment with the depth noise model of the input's `camera.toml`.
     pub fn with_depth_noise(mut self, model: Option<crate::depth_noise::DepthNoiseModel>) -> Self {
         self.depth_noise = model;

@@ -86,10 +86,7 @@ impl Plugin for NearLightSfs {
     type Params = NearLightSfsParams;
 
     fn build(params: NearLightSfsParams, env: &BuildEnv) -> Result<Self, StageError> {
-        let path = match &env.input_dir {
-            Some(dir) => dir.join(&params.light_file),
-            None => std::path::PathBuf::from(&params.light_file),
-        };
+        let path = env.input_file(&params.light_file);
         let light = capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
             StageError::invalid_input(format!("{e}; `near-light-sfs` needs the capsule's light model: put light.toml in the input folder (the phantom writes it; `capsule-slam calibrate-light` fits one), or set plugins.near-light-sfs.light_file; for an RGB-D input use the measured depth: --set pipeline.depth=sensor"))
         })?;

@@ -134,10 +134,7 @@ impl Plugin for Vignetting {
     type Params = VignettingParams;
 
     fn build(params: VignettingParams, env: &BuildEnv) -> Result<Self, StageError> {
-        let path = |name: &str| match &env.input_dir {
-            Some(dir) => dir.join(name),
-            None => std::path::PathBuf::from(name),
-        };
+        let path = |name: &str| env.input_file(name);
         let chosen = match params.source {
             Source::Auto if path(&params.light_file).is_file() => Source::Light,
             Source::Auto if path(&params.vignetting_file).is_file() => Source::File,

@@ -184,7 +184,8 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
                 let sigma_live = live.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(x, y)));
                 let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
                 let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated).sqrt();
-                if let Some(nl) = normal(&live.normals, x, y) {
+                let live_normal = normal(&live.normals, x, y);
+                if let Some(nl) = live_normal {
                     sys.live_n += 1;
                     if inside && let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
                         let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
@@ -206,7 +207,7 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
                     let i_live = f64::from(live.gray.at(x, y));
                     let predicted = match light {
                         None => i_live,
-                        Some((l, albedo)) => match relit(l, live, albedo, (x, y), t_ref_live, (uf, vf), &s) {
+                        Some((l, albedo)) => match live_normal.and_then(|nl| relit(l, live, albedo.at(x, y), &nl, t_ref_live, (uf, vf), &s)) {
                             Some(i) => i,
                             None => continue,
                         },
@@ -258,12 +259,11 @@ pub fn live_albedo(l: &LightModel, live: &Level) -> GrayF32 {
     })
 }
 
-/// The live pixel `px` relit to where its point stands in the reference view (`s`, at
-/// `uv_ref`): `encode(albedo · L_ref)`, L the light's linear response to a unit albedo. `None`
-/// where either side is unlit or the pixel has no normal.
-fn relit(l: &LightModel, live: &Level, albedo: &GrayF32, px: (usize, usize), t_ref_live: &Iso3, uv_ref: (f64, f64), s: &Vector3<f64>) -> Option<f64> {
-    let a = f64::from(albedo.at(px.0, px.1));
-    let nl = normal(&live.normals, px.0, px.1)?.cast::<f64>();
+/// A live pixel of albedo `albedo` (`live_albedo`) and normal `nl` relit to where its point
+/// stands in the reference view (`s`, at `uv_ref`): `encode(albedo · L_ref)`, L the light's
+/// linear response to a unit albedo. `None` where either side is unlit.
+fn relit(l: &LightModel, live: &Level, albedo: f32, nl: &Vector3<f32>, t_ref_live: &Iso3, uv_ref: (f64, f64), s: &Vector3<f64>) -> Option<f64> {
+    let (a, nl) = (f64::from(albedo), nl.cast::<f64>());
     let l_ref = l.linear(&live.cam, uv_ref.0, uv_ref.1, 1.0, &nalgebra::Point3::from(*s), &(t_ref_live.rotation * nl));
     (a > 0.0 && l_ref > 0.0).then(|| l.encode(a * l_ref))
 }

@@ -178,7 +178,7 @@ fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<LightModel>, O
     if light_file.is_empty() {
         return Ok((None, None));
     }
-    let path = env.input_dir.as_ref().map_or_else(|| std::path::PathBuf::from(light_file), |d| d.join(light_file));
+    let path = env.input_file(light_file);
     if !path.exists() {
         let why = format!(
             "no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
