@@ -74,7 +74,10 @@ pub fn pyramid(
 
 /// The live frame's pyramid: masked, range-limited, bilateral-filtered depth (as ElasticFusion
 /// tracks on filtered depth) and NTSC intensity in [0, 1].
-pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Vec<Level> {
+///
+/// `restore` maps the level-0 intensity image before the pyramid is built (the fall-off a
+/// preprocessor divided out multiplied back in, `relight::undivided`).
+pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep, restore: Option<&dyn Fn(GrayF32) -> GrayF32>) -> Vec<Level> {
     let params = GeometryParams {
         min_m: prep.min_m,
         max_m: prep.max_m,
@@ -86,6 +89,9 @@ pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthP
     let g = geometry(frame, cam, &params);
     let mut gray = gray_from_rgb(&frame.colour);
     gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
+    if let Some(restore) = restore {
+        gray = restore(gray);
+    }
     let mut out = pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep);
     if let Some(sigma) = &frame.depth_sigma_m {
         // Level l samples every 2^l-th pixel's σ: the mean of a 2 × 2 block of a spatially

@@ -7,11 +7,11 @@ use nalgebra::{Matrix6, Vector3, Vector6};
 use rayon::prelude::*;
 
 use super::frames::Level;
+use super::relight::Relighter;
 use super::terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
 use capsule_slam_framework::GrayF32;
-use capsule_slam_framework::light::LightModel;
 
 /// Weights and gates of one system.
 #[derive(Debug, Clone, Copy)]
@@ -141,84 +141,41 @@ impl System {
     }
 }
 
-/// The light model and the live level's albedo (`live_albedo`) that relight the photometric
-/// term, or none.
-pub type Relight<'a> = Option<(&'a LightModel, &'a GrayF32)>;
+/// The relighter and the live level's albedo ([`Relighter::live_albedo`]) that relight the
+/// photometric term, or none.
+pub type Relight<'a> = Option<(&'a Relighter<'a>, &'a GrayF32)>;
 
-/// Accumulates the system of `t_ref_live` over every `stride`-th live pixel: ICP against
-/// `reference`, the photometric term against `photo` (both in the reference camera frame).
+/// What one system is accumulated over: the live level, the ICP `reference` and the photometric
+/// reference `photo` (both in the reference camera frame), the relighting, and every
+/// `stride`-th live pixel.
+#[derive(Clone, Copy)]
+pub struct Inputs<'a> {
+    pub live: &'a Level,
+    pub reference: &'a Level,
+    pub photo: &'a Level,
+    pub light: Relight<'a>,
+    pub stride: usize,
+}
+
+/// Accumulates the system of `t_ref_live`.
 ///
-/// With the capsule's `light` model the photometric term compares the reference with the live
-/// intensity relit where the point stands in the reference view: `encode(decode(I_live) ·
-/// L_ref / L_live)`, L the model's linear response to a unit albedo there (distance², incidence,
-/// spot and vignetting; the albedo cancels). The light moves with the camera, so brightness
-/// constancy fails by ≈ 2 Δz / z between frames (11 % for 1.7 mm at 30 mm); the relit value is
-/// held fixed in the Jacobian (iteratively reweighted, as the depth of the residual is).
-pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &Iso3, w: &Weights, light: Relight<'_>, stride: usize) -> System {
-    let (lw, lh) = live.depth.size();
-    let (rw, rh) = reference.depth.size();
-    let cam = &reference.cam;
-    let stride = stride.max(1);
-    // A depth error correlated over ℓ pixels: the (ℓ / stride)² residuals of a block carry one
-    // residual's information, so the live σ's share of the weight is divided by that count;
-    // the gates and the loss test keep each pixel's own σ.
-    let correlated = (live.sigma_correlation_px / stride as f64).max(1.0).powi(2);
+/// With the capsule's light model (`light`, `relight.rs`) the photometric term compares the
+/// reference with the live intensity relit where the point stands in the reference view; the
+/// relit value is held fixed in the Jacobian (iteratively reweighted, as the depth of the
+/// residual is). A depth error correlated over ℓ pixels is counted once per block: the
+/// (ℓ / stride)² residuals of a block carry one residual's information, so the live σ's share
+/// of the weight is multiplied by that count; the gates and the loss test keep each pixel's own σ.
+pub fn accumulate(inp: &Inputs<'_>, t_ref_live: &Iso3, w: &Weights) -> System {
+    let (lw, lh) = inp.live.depth.size();
+    let stride = inp.stride.max(1);
+    let correlated = (inp.live.sigma_correlation_px / stride as f64).max(1.0).powi(2);
     let rows: Vec<System> = (0..lh)
         .into_par_iter()
         .step_by(stride)
         .map(|y| {
             let mut sys = System::zero();
             for x in (0..lw).step_by(stride) {
-                let Some(v) = vertex(&live.vertices, x, y) else { continue };
-                let s = t_ref_live * nalgebra::Point3::from(v.cast::<f64>());
-                if s.z <= 0.0 {
-                    continue;
-                }
-                let s = s.coords;
-                let (uf, vf) = (cam.fx * s.x / s.z + cam.cx, cam.fy * s.y / s.z + cam.cy);
-                // Nearest pixel; truncation after +0.5 rounds non-negative values without libm.
-                let inside = uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh;
-                let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
-                // The residual's σ: the registration floor and the live depth's own σ; its weight
-                // counts a correlated block of residuals as one (`correlated`).
-                let sigma_live = live.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(x, y)));
-                let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
-                let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated).sqrt();
-                let live_normal = normal(&live.normals, x, y);
-                if let Some(nl) = live_normal {
-                    sys.live_n += 1;
-                    if inside && let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
-                        let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
-                        let nl_ref = t_ref_live.rotation * nl.cast::<f64>();
-                        if (s - d).norm() <= w.icp_gate_m.max(w.gate_sigmas * sigma) && nl_ref.dot(&n) >= w.icp_cos_gate {
-                            let r = icp_residual(&s, &d, &n);
-                            let j = icp_jacobian(&s, &n);
-                            let wt = huber(r / sigma, w.huber_k) / (sigma_w * sigma_w);
-                            sys.add_row(&j, r, wt);
-                            sys.icp_n += 1;
-                            sys.icp_sse += r * r;
-                            sys.icp_chi2 += (r / sigma) * (r / sigma);
-                        }
-                    }
-                }
-                if w.w_rgb > 0.0 && inside {
-                    let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
-                    let Some((ir, gx, gy)) = reference_sample(photo, (ui, vi), (uf, vf), s.z, gate_m, w.rgb_min_gradient) else { continue };
-                    let i_live = f64::from(live.gray.at(x, y));
-                    let predicted = match light {
-                        None => i_live,
-                        Some((l, albedo)) => match live_normal.and_then(|nl| relit(l, live, albedo.at(x, y), &nl, t_ref_live, (uf, vf), &s)) {
-                            Some(i) => i,
-                            None => continue,
-                        },
-                    };
-                    let r = f64::from(ir) - predicted;
-                    let j = rgb_jacobian(&s, (gx, gy), cam.fx, cam.fy);
-                    let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
-                    sys.add_row(&j, r, wt);
-                    sys.rgb_n += 1;
-                    sys.rgb_sse += r * r;
-                }
+                pixel(inp, (x, y), t_ref_live, (w, correlated), &mut sys);
             }
             sys
         })
@@ -228,6 +185,61 @@ pub fn accumulate(live: &Level, reference: &Level, photo: &Level, t_ref_live: &I
         total.add(r);
     }
     total
+}
+
+/// The ICP and photometric rows of live pixel `(x, y)`.
+fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correlated): (&Weights, f64), sys: &mut System) {
+    let (live, reference, cam) = (inp.live, inp.reference, &inp.reference.cam);
+    let Some(v) = vertex(&live.vertices, x, y) else { return };
+    let s = (t_ref_live * nalgebra::Point3::from(v.cast::<f64>())).coords;
+    if s.z <= 0.0 {
+        return;
+    }
+    let (rw, rh) = reference.depth.size();
+    let (uf, vf) = (cam.fx * s.x / s.z + cam.cx, cam.fy * s.y / s.z + cam.cy);
+    // Nearest pixel; truncation after +0.5 rounds non-negative values without libm.
+    let inside = uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh;
+    let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+    // The residual's σ: the registration floor and the live depth's own σ; its weight counts a
+    // correlated block of residuals as one (`correlated`).
+    let sigma_live = live.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(x, y)));
+    let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
+    let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated).sqrt();
+    let live_normal = normal(&live.normals, x, y);
+    if let Some(nl) = live_normal {
+        sys.live_n += 1;
+        if inside && let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
+            let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
+            let nl_ref = t_ref_live.rotation * nl.cast::<f64>();
+            if (s - d).norm() <= w.icp_gate_m.max(w.gate_sigmas * sigma) && nl_ref.dot(&n) >= w.icp_cos_gate {
+                let r = icp_residual(&s, &d, &n);
+                let j = icp_jacobian(&s, &n);
+                let wt = huber(r / sigma, w.huber_k) / (sigma_w * sigma_w);
+                sys.add_row(&j, r, wt);
+                sys.icp_n += 1;
+                sys.icp_sse += r * r;
+                sys.icp_chi2 += (r / sigma) * (r / sigma);
+            }
+        }
+    }
+    if w.w_rgb <= 0.0 || !inside {
+        return;
+    }
+    let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
+    let Some((ir, gx, gy)) = reference_sample(inp.photo, (ui, vi), (uf, vf), s.z, gate_m, w.rgb_min_gradient) else { return };
+    let predicted = match inp.light {
+        None => f64::from(live.gray.at(x, y)),
+        Some((l, albedo)) => match live_normal.and_then(|nl| l.relit(&live.cam, albedo.at(x, y), &nl, t_ref_live, (uf, vf), &s)) {
+            Some(i) => i,
+            None => return,
+        },
+    };
+    let r = f64::from(ir) - predicted;
+    let j = rgb_jacobian(&s, (gx, gy), cam.fx, cam.fy);
+    let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+    sys.add_row(&j, r, wt);
+    sys.rgb_n += 1;
+    sys.rgb_sse += r * r;
 }
 
 /// The photometric reference at `(uf, vf)` (nearest pixel `(ui, vi)`): intensity and gradient,
@@ -245,27 +257,6 @@ fn reference_sample(photo: &Level, (ui, vi): (usize, usize), (uf, vf): (f64, f64
     }
     let (ir, gx, gy) = (bl.sample(&photo.gray), f64::from(bl.sample(&photo.gx)), f64::from(bl.sample(&photo.gy)));
     (gx * gx + gy * gy >= min_gradient * min_gradient).then_some((ir, gx, gy))
-}
-
-/// The live level's intensity over the light's response at each pixel, `decode(I) / L_live`
-/// (the albedo up to the light's gain; 0 where the pixel has no surface or no light): the
-/// pose-free half of the relighting, once per frame.
-pub fn live_albedo(l: &LightModel, live: &Level) -> GrayF32 {
-    let (w, h) = live.depth.size();
-    GrayF32::from_fn_par(w, h, |x, y| {
-        let (Some(v), Some(n)) = (vertex(&live.vertices, x, y), normal(&live.normals, x, y)) else { return [0.0] };
-        let l_live = l.linear(&live.cam, x as f64, y as f64, 1.0, &nalgebra::Point3::from(v.cast::<f64>()), &n.cast::<f64>());
-        [if l_live > 1e-9 { (l.decode(f64::from(live.gray.at(x, y))) / l_live) as f32 } else { 0.0 }]
-    })
-}
-
-/// A live pixel of albedo `albedo` (`live_albedo`) and normal `nl` relit to where its point
-/// stands in the reference view (`s`, at `uv_ref`): `encode(albedo · L_ref)`, L the light's
-/// linear response to a unit albedo. `None` where either side is unlit.
-fn relit(l: &LightModel, live: &Level, albedo: f32, nl: &Vector3<f32>, t_ref_live: &Iso3, uv_ref: (f64, f64), s: &Vector3<f64>) -> Option<f64> {
-    let (a, nl) = (f64::from(albedo), nl.cast::<f64>());
-    let l_ref = l.linear(&live.cam, uv_ref.0, uv_ref.1, 1.0, &nalgebra::Point3::from(*s), &(t_ref_live.rotation * nl));
-    (a > 0.0 && l_ref > 0.0).then(|| l.encode(a * l_ref))
 }
 
 #[cfg(test)]

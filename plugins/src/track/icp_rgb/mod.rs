@@ -27,6 +27,7 @@
 
 pub(crate) mod frames;
 mod gn;
+mod relight;
 mod terms;
 
 pub use terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
@@ -40,6 +41,7 @@ use serde::{Deserialize, Serialize};
 
 use frames::{DepthPrep, Level};
 use gn::{Weights, accumulate};
+use relight::Relighter;
 
 /// What the live frame is registered to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -164,10 +166,6 @@ pub struct IcpRgb {
     velocity: Option<Iso3>,
     /// The capsule's light model, which relights the photometric term (`light_file`).
     light: Option<LightModel>,
-    /// Whether the current frame is relit (a light model, and images with no fall-off divided
-    /// out), and whether the user has been told why not.
-    relight: bool,
-    told: bool,
     /// Why no light model was loaded although `light_file` names one (told on the first frame).
     missing: Option<String>,
 }
@@ -207,14 +205,14 @@ impl Plugin for IcpRgb {
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         let (light, missing) = load_light(&params.light_file, env)?;
-        Ok(Self { params, previous: None, velocity: None, light, relight: false, told: false, missing })
+        Ok(Self { params, previous: None, velocity: None, light, missing })
     }
 }
 
 impl IcpRgb {
     /// A tracker with no history (no previous frame, no velocity).
     pub fn new(params: IcpRgbParams) -> Self {
-        Self { params, previous: None, velocity: None, light: None, relight: false, told: false, missing: None }
+        Self { params, previous: None, velocity: None, light: None, missing: None }
     }
 
     /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
@@ -291,17 +289,13 @@ impl IcpRgb {
     /// The live frame's pyramid as this tracker prepares it (3 levels, finest first).
     pub(crate) fn live_pyramid(&mut self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {
         let clock = std::time::Instant::now();
-        let live = frames::live(frame, ctx.rig.camera(), LEVELS, &self.prep());
-        self.relight = self.light.is_some() && frame.photometry.divided.is_none();
+        let cam = ctx.rig.camera();
+        // The photometric term relights images as the camera took them: a fall-off a
+        // preprocessor divided out goes back in (`relight.rs`).
+        let restore = self.light.as_ref().zip(frame.photometry.divided).map(|(l, d)| move |g: GrayF32| relight::undivided(&g, l, d, cam));
+        let live = frames::live(frame, cam, LEVELS, &self.prep(), restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
         if let Some(why) = self.missing.take() {
             ctx.warn(why);
-        }
-        if self.light.is_some() && !self.relight && !self.told {
-            self.told = true;
-            ctx.warn(format!(
-                "light_file {:?} is not used: a preprocessor divided a fall-off out of the images, so the photometric term compares them unlit",
-                self.params.light_file
-            ));
         }
         ctx.count("ms_live_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         live
@@ -363,15 +357,18 @@ impl IcpRgb {
         };
         let noise = self.depth_noise(depth_source);
         let w = self.weights(&noise);
-        // The pose-free half of the relighting, per level (`gn::live_albedo`).
-        let albedo: Option<Vec<GrayF32>> = self.light.as_ref().filter(|_| self.relight).map(|l| live.iter().map(|lv| gn::live_albedo(l, lv)).collect());
-        let lit = |level: usize| self.light.as_ref().zip(albedo.as_ref()).map(|(l, a)| (l, &a[level]));
-        let initial = initial.then(|| accumulate(&live[0], &reference[0], &photo[0], &prior, &w, lit(0), self.params.stride_l0 as usize).icp_rms());
-        let (t, total_iters, fin) = self.coarse_to_fine(&live, &reference, photo, prior, &w, &lit);
+        // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
+        let relighter = self.light.as_ref().map(Relighter::new);
+        let albedo: Option<Vec<GrayF32>> = relighter.as_ref().map(|r| live.iter().map(|lv| r.live_albedo(lv)).collect());
+        let lit = |level: usize| relighter.as_ref().zip(albedo.as_ref()).map(|(r, a)| (r, &a[level]));
+        let initial = initial.then(|| {
+            let inp = gn::Inputs { live: &live[0], reference: &reference[0], photo: &photo[0], light: lit(0), stride: self.params.stride_l0 as usize };
+            accumulate(&inp, &prior, &w).icp_rms()
+        });
+        let Solution { t, iterations: total_iters, fin, covariance } = self.coarse_to_fine([&live, &reference, photo], prior, &w, &lit);
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         let jump = (prior.inverse() * t).translation.vector.norm();
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
-        let covariance = fin.a.full().try_inverse();
         let pose_sigma_m = covariance.map_or(f64::INFINITY, |c| c.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt());
         let why = self.verdict(&fin, &noise, inlier_share, jump, pose_sigma_m);
         let lost = why.is_some();
@@ -429,26 +426,22 @@ impl IcpRgb {
     }
 
     /// Gauss-Newton on the pyramid from the coarsest level, starting at `prior` (Eqs. 2–4):
-    /// the pose increment, the iterations run and the last level-0 system, whose figures judge
-    /// the result (ElasticFusion's convention).
-    fn coarse_to_fine<'a>(
-        &self,
-        live: &[Level],
-        reference: &[Level],
-        photo: &[Level],
-        prior: Iso3,
-        w: &Weights,
-        lit: &dyn Fn(usize) -> Option<(&'a LightModel, &'a GrayF32)>,
-    ) -> (Iso3, u32, gn::System) {
+    /// the pose increment, the iterations run, the last level-0 system, whose figures judge the
+    /// result (ElasticFusion's convention), and the pose's covariance.
+    fn coarse_to_fine<'a>(&self, pyramids: [&'a [Level]; 3], prior: Iso3, w: &Weights, lit: &dyn Fn(usize) -> gn::Relight<'a>) -> Solution {
+        let [live, reference, photo] = pyramids;
         let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
         let stride_l0 = self.params.stride_l0 as usize;
+        let inputs = |level: usize| -> gn::Inputs<'a> {
+            let stride = if level == 0 { stride_l0 } else { 1 };
+            gn::Inputs { live: &live[level], reference: &reference[level], photo: &photo[level], light: lit(level), stride }
+        };
         let mut t = prior;
         let mut total_iters = 0;
         let mut fin = None;
         for level in (0..LEVELS).rev() {
-            let stride = if level == 0 { stride_l0 } else { 1 };
             for _ in 0..iters[level] {
-                let sys = accumulate(&live[level], &reference[level], &photo[level], &t, w, lit(level), stride);
+                let sys = accumulate(&inputs(level), &t, w);
                 if level == 0 {
                     fin = Some(sys);
                 }
@@ -463,9 +456,17 @@ impl IcpRgb {
                 }
             }
         }
-        let fin = fin.unwrap_or_else(|| accumulate(&live[0], &reference[0], &photo[0], &t, w, lit(0), stride_l0));
-        (t, total_iters, fin)
+        let fin = fin.unwrap_or_else(|| accumulate(&inputs(0), &t, w));
+        Solution { t, iterations: total_iters, fin, covariance: fin.a.full().try_inverse() }
     }
+}
+
+/// What [`IcpRgb::coarse_to_fine`] found.
+struct Solution {
+    t: Iso3,
+    iterations: u32,
+    fin: gn::System,
+    covariance: Option<nalgebra::Matrix6<f64>>,
 }
 
 register!(Tracker, IcpRgb);

@@ -76,9 +76,9 @@ fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::f
     let (a, mut b) = (rgbd(&ph, 60), rgbd(&ph, 61));
     b.depth_sigma_m = sigma_live_m.map(|s| capsule_slam_framework::DepthMap::from_fn(b.depth_m.width(), b.depth_m.height(), |_, _| [s]));
     let prep = t.prep();
-    let previous = super::frames::live(&a, &ph.camera, 3, &prep);
+    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None);
     let reference = super::frames::reference(None, previous.first(), &ph.camera, 3, &prep).unwrap();
-    (super::frames::live(&b, &ph.camera, 3, &prep), reference)
+    (super::frames::live(&b, &ph.camera, 3, &prep, None), reference)
 }
 
 #[test]
@@ -98,9 +98,11 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
         rgb_min_gradient: 0.002,
     };
     let (live, reference) = levels(None);
-    let a = super::gn::accumulate(&live[1], &reference[1], &reference[1], &gap, &t(1e-3), None, 1);
+    let a =
+        super::gn::accumulate(&super::gn::Inputs { live: &live[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-3));
     let (live_s, _) = levels(Some((1e-6f32 - 1e-8).sqrt()));
-    let b = super::gn::accumulate(&live_s[1], &reference[1], &reference[1], &gap, &t(1e-4), None, 1);
+    let b =
+        super::gn::accumulate(&super::gn::Inputs { live: &live_s[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-4));
     assert!(a.icp_n > 500 && a.icp_n == b.icp_n, "inliers {} and {}", a.icp_n, b.icp_n);
     assert!((a.icp_rms_sigmas() / b.icp_rms_sigmas() - 1.0).abs() < 1e-4, "{} σ against {} σ", a.icp_rms_sigmas(), b.icp_rms_sigmas());
     let (ma, mb) = (a.a.full(), b.a.full());
@@ -108,7 +110,8 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     // A frame 1.2 × as noisy (its 3 σ still inside the 4 mm gate): its residuals are 1/1.2 as
     // many σ, and it weighs 1/1.2² (inside the Huber threshold) to 1/1.2 (outside) as much.
     let (live_2, _) = levels(Some(1.2e-3));
-    let c = super::gn::accumulate(&live_2[1], &reference[1], &reference[1], &gap, &t(1e-9), None, 1);
+    let c =
+        super::gn::accumulate(&super::gn::Inputs { live: &live_2[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-9));
     assert_eq!(c.icp_n, a.icp_n);
     assert!((c.icp_rms_sigmas() / a.icp_rms_sigmas() - 1.0 / 1.2).abs() < 1e-3, "{} σ against {} σ", c.icp_rms_sigmas(), a.icp_rms_sigmas());
     let ratio = c.a.full().norm() / ma.norm();
@@ -183,8 +186,8 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let (a, b) = (rgbd(&ph, 100), rgbd(&ph, 112));
     let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
     let prep = t.prep();
-    let previous = super::frames::live(&a, &ph.camera, 3, &prep);
-    let live = super::frames::live(&b, &ph.camera, 3, &prep);
+    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None);
+    let live = super::frames::live(&b, &ph.camera, 3, &prep, None);
     let w = super::gn::Weights {
         w_rgb: 1.0,
         sigma_icp_m: 3e-4,
@@ -196,12 +199,76 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
         rgb_depth_gate_m: 0.002,
         rgb_min_gradient: 0.0,
     };
-    let albedo = super::gn::live_albedo(&ph.light, &live[0]);
-    let rms = |light: Option<&capsule_slam_framework::light::LightModel>| {
-        let s = super::gn::accumulate(&live[0], &previous[0], &previous[0], &t_ref_live, &w, light.map(|l| (l, &albedo)), 1);
+    let relighter = super::relight::Relighter::new(&ph.light);
+    let albedo = relighter.live_albedo(&live[0]);
+    let rms = |light: Option<&super::relight::Relighter>| {
+        let s = super::gn::accumulate(
+            &super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], light: light.map(|l| (l, &albedo)), stride: 1 },
+            &t_ref_live,
+            &w,
+        );
         assert!(s.rgb_n > 10_000, "{} photometric pixels", s.rgb_n);
         (s.rgb_sse / s.rgb_n as f64).sqrt()
     };
-    let (unlit, relit) = (rms(None), rms(Some(&ph.light)));
+    let (unlit, relit) = (rms(None), rms(Some(&relighter)));
     assert!(relit < 0.5 * unlit, "intensity RMS {relit:.4} relit against {unlit:.4} unlit");
+}
+
+#[test]
+fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
+    // The default pipeline's `vignetting` divides the lens-and-LED fall-off F out of the images
+    // before tracking; `relight::undivided` multiplies it back in, so that the relighting
+    // explains the light's move as on the raw images, up to the 8-bit rounding.
+    use capsule_slam_framework::frame::{DividedFalloff, Falloff};
+    use capsule_slam_framework::light::vignetting::light_falloff;
+    let ph = phantom(1, 300, 0.0);
+    let t = tracker(IcpRgbParams::default(), &ph);
+    let l = &ph.light;
+    let d = DividedFalloff { falloff: Falloff::LensAndLight, linear_scale: 1.0, gamma: l.gamma };
+    let divide = |mut f: capsule_slam_framework::RgbdFrame| {
+        let w = f.colour.width();
+        for (k, px) in f.colour.data_mut().chunks_mut(3).enumerate() {
+            let fall = light_falloff(l, &ph.camera, (k % w) as f64, (k / w) as f64, Falloff::LensAndLight);
+            px.iter_mut().for_each(|c| *c = (255.0 * l.encode(l.decode(f64::from(*c) / 255.0) / fall)).round() as u8);
+        }
+        f
+    };
+    let w = super::gn::Weights {
+        w_rgb: 1.0,
+        sigma_icp_m: 3e-4,
+        sigma_rgb: 0.02,
+        huber_k: 1.345,
+        icp_gate_m: 0.004,
+        gate_sigmas: 3.0,
+        icp_cos_gate: 0.35f64.cos(),
+        rgb_depth_gate_m: 0.002,
+        rgb_min_gradient: 0.0,
+    };
+    let restore = |g: capsule_slam_framework::GrayF32| super::relight::undivided(&g, l, d, &ph.camera);
+    let pyramids = |divided: bool| {
+        let (mut a, mut b) = (rgbd(&ph, 100), rgbd(&ph, 112));
+        if divided {
+            (a, b) = (divide(a), divide(b));
+        }
+        let r: Option<&dyn Fn(capsule_slam_framework::GrayF32) -> capsule_slam_framework::GrayF32> = if divided { Some(&restore) } else { None };
+        let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
+        (super::frames::live(&a, &ph.camera, 3, &t.prep(), r), super::frames::live(&b, &ph.camera, 3, &t.prep(), r), t_ref_live)
+    };
+    let (raw, restored) = (pyramids(false), pyramids(true));
+    // The restored intensities are the raw ones to within the 8-bit rounding, scaled.
+    let (g_raw, g_res) = (&raw.1[0].gray, &restored.1[0].gray);
+    let worst = g_raw.data().iter().zip(g_res.data()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(worst < 2.5 / 255.0, "restored intensity off by {worst}");
+    let relighter = super::relight::Relighter::new(l);
+    let rms = |(previous, live, t_ref_live): &(Vec<super::frames::Level>, Vec<super::frames::Level>, capsule_slam_framework::Iso3)| {
+        let albedo = relighter.live_albedo(&live[0]);
+        let s = super::gn::accumulate(
+            &super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], light: Some((&relighter, &albedo)), stride: 1 },
+            t_ref_live,
+            &w,
+        );
+        (s.rgb_sse / s.rgb_n as f64).sqrt()
+    };
+    let (rms_raw, rms_restored) = (rms(&raw), rms(&restored));
+    assert!(rms_restored < 1.1 * rms_raw, "relit intensity RMS {rms_restored:.4} restored against {rms_raw:.4} raw");
 }

@@ -1,0 +1,85 @@
+//! Relighting of the photometric term. A capsule's light moves with its camera, so between
+//! frames the same tissue changes brightness by about twice the relative change of its distance
+//! (11 % for 1.7 mm at 30 mm): brightness constancy fails. With the capsule's light model
+//! (`light.toml`) the live intensity is relit to where each point stands in the reference view,
+//! `encode(decode(I_live) · L_ref / L_live)`, L the model's linear response to a unit albedo
+//! (distance², incidence, spot and vignetting, Sec. 3.2 of the paper's light model; the albedo
+//! cancels).
+//!
+//! Where a preprocessor divided a fall-off F(u) out of the images (`vignetting`: the lens and
+//! LED profile, or the whole flat field; the default pipeline's images), the image holds
+//! `s · L / F` (Goldman 2010): [`undivided`] multiplies F back in before tracking. Relighting
+//! the divided values by `L / F` is the same arithmetic, but the photometric gates and noise
+//! scale are fixed intensities, and on the divided images (brighter towards the rim) they
+//! tracked worse: on the seven 5 % smooth-noise phantoms 5 of 7 lost frames against 1 of 7
+//! (`docs/results/depth-noise.md`).
+
+use capsule_slam_framework::frame::DividedFalloff;
+use capsule_slam_framework::light::LightModel;
+use capsule_slam_framework::light::vignetting::light_falloff;
+use capsule_slam_framework::{GrayF32, Iso3, PinholeCamera};
+use nalgebra::{Point3, Vector3};
+
+use super::frames::Level;
+use crate::common::maps::{normal, vertex};
+
+/// The light model that relights the photometric term.
+#[derive(Debug, Clone, Copy)]
+pub struct Relighter<'a> {
+    light: &'a LightModel,
+}
+
+/// The intensity image (in [0, 1], encoded with `divided.gamma`) with the fall-off F that a
+/// preprocessor divided out multiplied back in, `encode(decode(I) · F / s)` with the light's
+/// encoding: the image as the camera took it, up to the 8-bit rounding and the pixels the
+/// division clipped (which the preprocessor masks).
+pub fn undivided(gray: &GrayF32, light: &LightModel, divided: DividedFalloff, cam: &PinholeCamera) -> GrayF32 {
+    let (w, h) = gray.size();
+    GrayF32::from_fn_par(w, h, |x, y| {
+        let g = f64::from(gray.at(x, y));
+        let f = light_falloff(light, cam, x as f64, y as f64, divided.falloff);
+        [light.encode(g.clamp(0.0, 1.0).powf(divided.gamma) * f / divided.linear_scale) as f32]
+    })
+}
+
+impl<'a> Relighter<'a> {
+    /// Relights images lit by `light` as the camera took them.
+    pub fn new(light: &'a LightModel) -> Self {
+        Self { light }
+    }
+
+    /// The image's linear response at pixel (u, v) to a unit albedo at camera-frame point `p`
+    /// with normal `n`.
+    fn response(&self, cam: &PinholeCamera, (u, v): (f64, f64), p: &Point3<f64>, n: &Vector3<f64>) -> f64 {
+        self.light.linear(cam, u, v, 1.0, p, n)
+    }
+
+    fn decode(&self, encoded: f64) -> f64 {
+        self.light.decode(encoded)
+    }
+
+    fn encode(&self, linear: f64) -> f64 {
+        self.light.encode(linear)
+    }
+
+    /// The live level's intensity over the light's response at each pixel, `decode(I) /
+    /// response` (the albedo up to the light's gain; 0 where the pixel has no surface or no
+    /// light): the pose-free half of the relighting, once per frame.
+    pub fn live_albedo(&self, live: &Level) -> GrayF32 {
+        let (w, h) = live.depth.size();
+        GrayF32::from_fn_par(w, h, |x, y| {
+            let (Some(v), Some(n)) = (vertex(&live.vertices, x, y), normal(&live.normals, x, y)) else { return [0.0] };
+            let r = self.response(&live.cam, (x as f64, y as f64), &Point3::from(v.cast::<f64>()), &n.cast::<f64>());
+            [if r > 1e-9 { (self.decode(f64::from(live.gray.at(x, y))) / r) as f32 } else { 0.0 }]
+        })
+    }
+
+    /// A live pixel of albedo `albedo` ([`Relighter::live_albedo`]) and normal `nl` relit to
+    /// where its point stands in the reference view (`s`, at `uv_ref`): `encode(albedo ·
+    /// response_ref)`. `None` where either side is unlit.
+    pub fn relit(&self, cam: &PinholeCamera, albedo: f32, nl: &Vector3<f32>, t_ref_live: &Iso3, uv_ref: (f64, f64), s: &Vector3<f64>) -> Option<f64> {
+        let (a, nl) = (f64::from(albedo), nl.cast::<f64>());
+        let r_ref = self.response(cam, uv_ref, &Point3::from(*s), &(t_ref_live.rotation * nl));
+        (a > 0.0 && r_ref > 0.0).then(|| self.encode(a * r_ref))
+    }
+}
