@@ -11,7 +11,7 @@
 //! `s · L / F` (Goldman 2010): [`undivided`] multiplies F back in before tracking. Relighting
 //! the divided values by `L / F` is the same arithmetic, but the photometric gates and noise
 //! scale are fixed intensities, and on the divided images (brighter towards the rim) they
-//! tracked worse: on the seven 5 % smooth-noise phantoms 5 of 7 lost frames against 1 of 7
+//! tracked worse: on the seven 5 % smooth-noise phantoms 4 of 7 lost frames against 1 of 7
 //! (`docs/results/depth-noise.md`).
 
 use capsule_slam_framework::frame::DividedFalloff;
