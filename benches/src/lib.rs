@@ -28,10 +28,16 @@ pub fn rig(p: &Phantom) -> Rig {
 
 /// Builds a registered plugin with default parameters.
 pub fn build(name: &str, p: &Phantom) -> capsule_slam_framework::registry::Stage {
+    build_in(name, p, None)
+}
+
+/// Builds a registered plugin with default parameters for an input folder `dir` (where it
+/// finds its calibration files, e.g. the phantom's `light.toml`).
+pub fn build_in(name: &str, p: &Phantom, dir: Option<&std::path::Path>) -> capsule_slam_framework::registry::Stage {
     link();
     let registry = capsule_slam_framework::Registry::from_inventory().unwrap_or_else(|e| panic!("registry: {e}"));
     let entry = registry.get(name).unwrap_or_else(|| panic!("{name} is not registered"));
-    let env = capsule_slam_framework::registry::BuildEnv::new(rig(p), None);
+    let env = capsule_slam_framework::registry::BuildEnv::new(rig(p), dir.map(std::path::Path::to_path_buf));
     entry.build(&toml::Table::new(), &env).unwrap_or_else(|e| panic!("building {name}: {e}"))
 }
 

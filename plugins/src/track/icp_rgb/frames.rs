@@ -76,7 +76,7 @@ pub fn pyramid(
 /// tracks on filtered depth) and NTSC intensity in [0, 1].
 ///
 /// `restore` maps the level-0 intensity image before the pyramid is built (the fall-off a
-/// preprocessor divided out multiplied back in, `relight::undivided`).
+/// preprocessor divided out multiplied back in, `relight::Undivide`).
 pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep, restore: Option<&dyn Fn(GrayF32) -> GrayF32>) -> Vec<Level> {
     let params = GeometryParams {
         min_m: prep.min_m,

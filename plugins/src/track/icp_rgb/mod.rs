@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 
 use frames::{DepthPrep, Level};
 use gn::{Weights, accumulate};
-use relight::Relighter;
+use relight::{Relighter, Undivide};
 
 /// What the live frame is registered to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -168,6 +168,8 @@ pub struct IcpRgb {
     light: Option<LightModel>,
     /// Why no light model was loaded although `light_file` names one (told on the first frame).
     missing: Option<String>,
+    /// The table that multiplies a divided fall-off back in (`relight::Undivide`).
+    undivide: Option<Undivide>,
 }
 
 /// The light model `light_file` names (relative to the input folder), or none with the reason
@@ -205,14 +207,14 @@ impl Plugin for IcpRgb {
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         let (light, missing) = load_light(&params.light_file, env)?;
-        Ok(Self { params, previous: None, velocity: None, light, missing })
+        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None })
     }
 }
 
 impl IcpRgb {
     /// A tracker with no history (no previous frame, no velocity).
     pub fn new(params: IcpRgbParams) -> Self {
-        Self { params, previous: None, velocity: None, light: None, missing: None }
+        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None }
     }
 
     /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
@@ -291,8 +293,14 @@ impl IcpRgb {
         let clock = std::time::Instant::now();
         let cam = ctx.rig.camera();
         // The photometric term relights images as the camera took them: a fall-off a
-        // preprocessor divided out goes back in (`relight.rs`).
-        let restore = self.light.as_ref().zip(frame.photometry.divided).map(|(l, d)| move |g: GrayF32| relight::undivided(&g, l, d, cam));
+        // preprocessor divided out goes back in (`relight.rs`), by a table kept per camera.
+        if let (Some(l), Some(d)) = (&self.light, frame.photometry.divided)
+            && self.undivide.as_ref().is_none_or(|u| !u.fits(cam, &d))
+        {
+            self.undivide = Some(Undivide::new(l, d, cam));
+        }
+        let undivide = self.undivide.as_ref().filter(|_| self.light.is_some() && frame.photometry.divided.is_some());
+        let restore = undivide.map(|u| move |g: GrayF32| u.apply(g));
         let live = frames::live(frame, cam, LEVELS, &self.prep(), restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
         if let Some(why) = self.missing.take() {
             ctx.warn(why);

@@ -8,7 +8,7 @@
 //!
 //! Where a preprocessor divided a fall-off F(u) out of the images (`vignetting`: the lens and
 //! LED profile, or the whole flat field; the default pipeline's images), the image holds
-//! `s · L / F` (Goldman 2010): [`undivided`] multiplies F back in before tracking. Relighting
+//! `s · L / F` (Goldman 2010): [`Undivide`] multiplies F back in before tracking. Relighting
 //! the divided values by `L / F` is the same arithmetic, but the photometric gates and noise
 //! scale are fixed intensities, and on the divided images (brighter towards the rim) they
 //! tracked worse: on the seven 5 % smooth-noise phantoms 4 of 7 lost frames against 1 of 7
@@ -29,17 +29,44 @@ pub struct Relighter<'a> {
     light: &'a LightModel,
 }
 
-/// The intensity image (in [0, 1], encoded with `divided.gamma`) with the fall-off F that a
-/// preprocessor divided out multiplied back in, `encode(decode(I) · F / s)` with the light's
-/// encoding: the image as the camera took it, up to the 8-bit rounding and the pixels the
-/// division clipped (which the preprocessor masks).
-pub fn undivided(gray: &GrayF32, light: &LightModel, divided: DividedFalloff, cam: &PinholeCamera) -> GrayF32 {
-    let (w, h) = gray.size();
-    GrayF32::from_fn_par(w, h, |x, y| {
-        let g = f64::from(gray.at(x, y));
-        let f = light_falloff(light, cam, x as f64, y as f64, divided.falloff);
-        [light.encode(g.clamp(0.0, 1.0).powf(divided.gamma) * f / divided.linear_scale) as f32]
-    })
+/// What multiplies a divided fall-off F back in, per pixel of one camera:
+/// `encode(decode_d(I) · F / s) = min(1, I^(γ_d/γ) · (F / s)^(1/γ))` with the light's encoding γ
+/// and the preprocessor's γ_d (the same in practice, and then one product per pixel). Built once
+/// per camera and fall-off.
+#[derive(Debug, Clone)]
+pub struct Undivide {
+    cam: PinholeCamera,
+    divided: DividedFalloff,
+    exponent: f32,
+    gain: GrayF32,
+}
+
+impl Undivide {
+    /// The table of `light`'s fall-off `divided` for `cam`.
+    pub fn new(light: &LightModel, divided: DividedFalloff, cam: &PinholeCamera) -> Self {
+        let gain = GrayF32::from_fn_par(cam.width, cam.height, |x, y| {
+            let f = light_falloff(light, cam, x as f64, y as f64, divided.falloff);
+            [(f.max(0.0) / divided.linear_scale).powf(1.0 / light.gamma) as f32]
+        });
+        Self { cam: cam.clone(), divided, exponent: (divided.gamma / light.gamma) as f32, gain }
+    }
+
+    /// Whether the table is the one for `cam` and `divided`.
+    pub fn fits(&self, cam: &PinholeCamera, divided: &DividedFalloff) -> bool {
+        self.cam == *cam && self.divided == *divided
+    }
+
+    /// The intensity image (in [0, 1]) with the fall-off multiplied back in: the image as the
+    /// camera took it, up to the 8-bit rounding and the pixels the division clipped (which the
+    /// preprocessor masks).
+    pub fn apply(&self, mut gray: GrayF32) -> GrayF32 {
+        let exact = (self.exponent - 1.0).abs() < 1e-6;
+        for (g, k) in gray.data_mut().iter_mut().zip(self.gain.data()) {
+            let v = g.clamp(0.0, 1.0);
+            *g = (if exact { v } else { v.powf(self.exponent) } * k).min(1.0);
+        }
+        gray
+    }
 }
 
 impl<'a> Relighter<'a> {

@@ -217,7 +217,7 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
 #[test]
 fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     // The default pipeline's `vignetting` divides the lens-and-LED fall-off F out of the images
-    // before tracking; `relight::undivided` multiplies it back in, so that the relighting
+    // before tracking; `relight::Undivide` multiplies it back in, so that the relighting
     // explains the light's move as on the raw images, up to the 8-bit rounding.
     use capsule_slam_framework::frame::{DividedFalloff, Falloff};
     use capsule_slam_framework::light::vignetting::light_falloff;
@@ -244,7 +244,8 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
         rgb_depth_gate_m: 0.002,
         rgb_min_gradient: 0.0,
     };
-    let restore = |g: capsule_slam_framework::GrayF32| super::relight::undivided(&g, l, d, &ph.camera);
+    let table = super::relight::Undivide::new(l, d, &ph.camera);
+    let restore = |g: capsule_slam_framework::GrayF32| table.apply(g);
     let pyramids = |divided: bool| {
         let (mut a, mut b) = (rgbd(&ph, 100), rgbd(&ph, 112));
         if divided {
