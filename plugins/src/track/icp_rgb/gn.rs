@@ -163,8 +163,9 @@ pub struct Inputs<'a> {
 /// reference with the live intensity relit where the point stands in the reference view; the
 /// relit value is held fixed in the Jacobian (iteratively reweighted, as the depth of the
 /// residual is). A depth error correlated over ℓ pixels is counted once per block: the
-/// (ℓ / stride)² residuals of a block carry one residual's information, so the live σ's share
-/// of the weight is multiplied by that count; the gates and the loss test keep each pixel's own σ.
+/// (ℓ / stride)² residuals of a block carry one residual's information, so the live σ² in the
+/// weight's variance is multiplied by that count; the gates and the loss test keep each pixel's
+/// own σ.
 pub fn accumulate(inp: &Inputs<'_>, t_ref_live: &Iso3, w: &Weights) -> System {
     let (lw, lh) = inp.live.depth.size();
     let stride = inp.stride.max(1);

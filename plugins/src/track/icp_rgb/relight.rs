@@ -3,8 +3,8 @@
 //! (11 % for 1.7 mm at 30 mm): brightness constancy fails. With the capsule's light model
 //! (`light.toml`) the live intensity is relit to where each point stands in the reference view,
 //! `encode(decode(I_live) · L_ref / L_live)`, L the model's linear response to a unit albedo
-//! (distance², incidence, spot and vignetting, Sec. 3.2 of the paper's light model; the albedo
-//! cancels).
+//! (distance², incidence, the LED's spot and the lens vignetting, the near-light model of
+//! `light.toml`, `capsule_slam_framework::light`; the albedo cancels).
 //!
 //! Where a preprocessor divided a fall-off F(u) out of the images (`vignetting`: the lens and
 //! LED profile, or the whole flat field; the default pipeline's images), the image holds
@@ -22,12 +22,6 @@ use nalgebra::{Point3, Vector3};
 
 use super::frames::Level;
 use crate::common::maps::{normal, vertex};
-
-/// The light model that relights the photometric term.
-#[derive(Debug, Clone, Copy)]
-pub struct Relighter<'a> {
-    light: &'a LightModel,
-}
 
 /// What multiplies a divided fall-off F back in, per pixel of one camera:
 /// `encode(decode_d(I) · F / s) = min(1, I^(γ_d/γ) · (F / s)^(1/γ))` with the light's encoding γ
@@ -67,6 +61,12 @@ impl Undivide {
         }
         gray
     }
+}
+
+/// The light model that relights the photometric term.
+#[derive(Debug, Clone, Copy)]
+pub struct Relighter<'a> {
+    light: &'a LightModel,
 }
 
 impl<'a> Relighter<'a> {

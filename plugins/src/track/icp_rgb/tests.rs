@@ -86,17 +86,7 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     // σ = 1 mm as the tracker's floor alone, or as a 0.1 mm floor and the frame's own σ of
     // √(1 − 0.01) mm: the same system, residual for residual.
     let gap = exp_se3(&Vector6::new(3e-4, -2e-4, 5e-4, 0.002, 0.0, -0.001));
-    let t = |floor: f64| super::gn::Weights {
-        w_rgb: 0.0,
-        sigma_icp_m: floor,
-        sigma_rgb: 0.02,
-        huber_k: 1.345,
-        icp_gate_m: 0.004,
-        gate_sigmas: 3.0,
-        icp_cos_gate: 0.35f64.cos(),
-        rgb_depth_gate_m: 0.002,
-        rgb_min_gradient: 0.002,
-    };
+    let t = |floor: f64| super::gn::Weights { w_rgb: 0.0, sigma_icp_m: floor, rgb_min_gradient: 0.002, ..photometric_weights() };
     let (live, reference) = levels(None);
     let a =
         super::gn::accumulate(&super::gn::Inputs { live: &live[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-3));
@@ -176,6 +166,22 @@ fn a_frame_with_a_five_percent_smooth_depth_error_is_tracked_with_its_sigma() {
     assert!(e.translation.vector.norm() < 5e-3, "translation error {} mm", e.translation.vector.norm() * 1e3);
 }
 
+/// The default weights with every photometric pixel counted (no gradient threshold) and the
+/// photometric term at full weight: for comparing intensity residuals.
+fn photometric_weights() -> super::gn::Weights {
+    super::gn::Weights {
+        w_rgb: 1.0,
+        sigma_icp_m: 3e-4,
+        sigma_rgb: 0.02,
+        huber_k: 1.345,
+        icp_gate_m: 0.004,
+        gate_sigmas: 3.0,
+        icp_cos_gate: 0.35f64.cos(),
+        rgb_depth_gate_m: 0.002,
+        rgb_min_gradient: 0.0,
+    }
+}
+
 #[test]
 fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving_camera() {
     // Two frames 12 apart (3 mm) at their true relative pose: the light moved with the camera,
@@ -188,17 +194,7 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let prep = t.prep();
     let previous = super::frames::live(&a, &ph.camera, 3, &prep, None);
     let live = super::frames::live(&b, &ph.camera, 3, &prep, None);
-    let w = super::gn::Weights {
-        w_rgb: 1.0,
-        sigma_icp_m: 3e-4,
-        sigma_rgb: 0.02,
-        huber_k: 1.345,
-        icp_gate_m: 0.004,
-        gate_sigmas: 3.0,
-        icp_cos_gate: 0.35f64.cos(),
-        rgb_depth_gate_m: 0.002,
-        rgb_min_gradient: 0.0,
-    };
+    let w = photometric_weights();
     let relighter = super::relight::Relighter::new(&ph.light);
     let albedo = relighter.live_albedo(&live[0]);
     let rms = |light: Option<&super::relight::Relighter>| {
@@ -233,17 +229,7 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
         }
         f
     };
-    let w = super::gn::Weights {
-        w_rgb: 1.0,
-        sigma_icp_m: 3e-4,
-        sigma_rgb: 0.02,
-        huber_k: 1.345,
-        icp_gate_m: 0.004,
-        gate_sigmas: 3.0,
-        icp_cos_gate: 0.35f64.cos(),
-        rgb_depth_gate_m: 0.002,
-        rgb_min_gradient: 0.0,
-    };
+    let w = photometric_weights();
     let table = super::relight::Undivide::new(l, d, &ph.camera);
     let restore = |g: capsule_slam_framework::GrayF32| table.apply(g);
     let pyramids = |divided: bool| {
