@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::frames::Level;
 use super::relight::Relighter;
-use super::terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
+use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_sigma, rgb_jacobian};
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
 use capsule_slam_framework::GrayF32;
@@ -169,7 +169,7 @@ pub struct Inputs<'a> {
 pub fn accumulate(inp: &Inputs<'_>, t_ref_live: &Iso3, w: &Weights) -> System {
     let (lw, lh) = inp.live.depth.size();
     let stride = inp.stride.max(1);
-    let correlated = (inp.live.sigma_correlation_px / stride as f64).max(1.0).powi(2);
+    let correlated = correlated_count(inp.live.sigma_correlation_px, stride as f64);
     let rows: Vec<System> = (0..lh)
         .into_par_iter()
         .step_by(stride)
@@ -204,7 +204,7 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     // The residual's σ: the registration floor and the live depth's own σ; its weight counts a
     // correlated block of residuals as one (`correlated`).
     let sigma_live = live.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(x, y)));
-    let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
+    let sigma = residual_sigma(w.sigma_icp_m, sigma_live);
     let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated).sqrt();
     let live_normal = normal(&live.normals, x, y);
     if let Some(nl) = live_normal {

@@ -30,7 +30,7 @@ mod gn;
 mod relight;
 mod terms;
 
-pub use terms::{huber, icp_jacobian, icp_residual, rgb_jacobian};
+pub use terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_sigma, rgb_jacobian};
 
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::light::LightModel;
@@ -294,12 +294,15 @@ impl IcpRgb {
         let cam = ctx.rig.camera();
         // The photometric term relights images as the camera took them: a fall-off a
         // preprocessor divided out goes back in (`relight.rs`), by a table kept per camera.
-        if let (Some(l), Some(d)) = (&self.light, frame.photometry.divided)
-            && self.undivide.as_ref().is_none_or(|u| !u.fits(cam, &d))
-        {
-            self.undivide = Some(Undivide::new(l, d, cam));
-        }
-        let undivide = self.undivide.as_ref().filter(|_| self.light.is_some() && frame.photometry.divided.is_some());
+        let undivide = match (&self.light, frame.photometry.divided) {
+            (Some(l), Some(d)) => {
+                if self.undivide.as_ref().is_none_or(|u| !u.fits(cam, &d)) {
+                    self.undivide = Some(Undivide::new(l, d, cam));
+                }
+                self.undivide.as_ref()
+            }
+            _ => None,
+        };
         let restore = undivide.map(|u| move |g: GrayF32| u.apply(g));
         let live = frames::live(frame, cam, LEVELS, &self.prep(), restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
         if let Some(why) = self.missing.take() {

@@ -25,6 +25,19 @@ pub fn rgb_jacobian(s: &Vector3<f64>, grad: (f64, f64), fx: f64, fy: f64) -> Vec
     Vector6::new(a.x, a.y, a.z, c.x, c.y, c.z)
 }
 
+/// σ of a point-to-plane residual, metres: the registration floor and the live depth's own σ
+/// (issue 17), `√(floor² + σ_live²)`; it scales the gates, the Huber threshold and the loss test.
+pub fn residual_sigma(floor_m: f64, sigma_live_m: f64) -> f64 {
+    (floor_m * floor_m + sigma_live_m * sigma_live_m).sqrt()
+}
+
+/// How many residuals, `spacing_px` apart, share one draw of a depth error correlated over
+/// `correlation_px` pixels, `max(1, ℓ / spacing)²`: the live σ² enters a residual's weight
+/// that many times, so that a correlated patch counts as one measurement.
+pub fn correlated_count(correlation_px: f64, spacing_px: f64) -> f64 {
+    (correlation_px / spacing_px).max(1.0).powi(2)
+}
+
 /// Huber weight of a normalised residual `e` (1 inside ±k, k/|e| outside).
 pub fn huber(e: f64, k: f64) -> f64 {
     if e.abs() <= k { 1.0 } else { k / e.abs() }

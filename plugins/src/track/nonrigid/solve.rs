@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use crate::common::ed_graph::{Graph, GraphWeights, UNKNOWNS};
 use crate::track::icp_rgb::frames::Level;
-use crate::track::icp_rgb::huber;
+use crate::track::icp_rgb::{correlated_count, huber, residual_sigma};
 
 use super::energy::{data_camera_row, data_residual, image_gradient_cam, node_row, photo_camera_row, photo_world_gradient};
 use super::points::{ModelPoint, look};
@@ -290,8 +290,8 @@ impl<'a> Problem<'a> {
         let mut icp_r2 = None;
         // σ of the residual (floor and live depth) for the gate and the Huber threshold; the
         // weight counts a correlated patch of points once (`icp-rgb`'s `gn.rs`).
-        let sigma = (w.sigma_icp_m * w.sigma_icp_m + live.sigma_m * live.sigma_m).sqrt();
-        let correlated = (level.sigma_correlation_px / w.point_stride_px).max(1.0).powi(2);
+        let sigma = residual_sigma(w.sigma_icp_m, live.sigma_m);
+        let correlated = correlated_count(level.sigma_correlation_px, w.point_stride_px);
         let sigma_w2 = w.sigma_icp_m * w.sigma_icp_m + live.sigma_m * live.sigma_m * correlated;
         let close = (warped - live.p_world_m).norm() <= w.gate_m.max(w.gate_sigmas * sigma) && p.n_world.dot(&live.n_world) >= w.cos_gate;
         if close {
