@@ -294,17 +294,10 @@ impl IcpRgb {
         let cam = ctx.rig.camera();
         // The photometric term relights images as the camera took them: a fall-off a
         // preprocessor divided out goes back in (`relight.rs`), by a table kept per camera.
-        let undivide = match (&self.light, frame.photometry.divided) {
-            (Some(l), Some(d)) => {
-                if self.undivide.as_ref().is_none_or(|u| !u.fits(cam, &d)) {
-                    self.undivide = Some(Undivide::new(l, d, cam));
-                }
-                self.undivide.as_ref()
-            }
-            _ => None,
-        };
+        let prep = self.prep();
+        let undivide = Undivide::kept(&mut self.undivide, self.light.as_ref(), frame.photometry.divided, cam);
         let restore = undivide.map(|u| move |g: GrayF32| u.apply(g));
-        let live = frames::live(frame, cam, LEVELS, &self.prep(), restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
+        let live = frames::live(frame, cam, LEVELS, &prep, restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
         if let Some(why) = self.missing.take() {
             ctx.warn(why);
         }

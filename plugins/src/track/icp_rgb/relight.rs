@@ -45,9 +45,14 @@ impl Undivide {
         Self { cam: cam.clone(), divided, exponent: (divided.gamma / light.gamma) as f32, gain }
     }
 
-    /// Whether the table is the one for `cam` and `divided`.
-    pub fn fits(&self, cam: &PinholeCamera, divided: &DividedFalloff) -> bool {
-        self.cam == *cam && self.divided == *divided
+    /// The table kept in `slot`, rebuilt when the camera or the fall-off changed; none where
+    /// there is no light model or nothing was divided out.
+    pub fn kept<'s>(slot: &'s mut Option<Self>, light: Option<&LightModel>, divided: Option<DividedFalloff>, cam: &PinholeCamera) -> Option<&'s Self> {
+        let (light, divided) = (light?, divided?);
+        if slot.as_ref().is_none_or(|u| u.cam != *cam || u.divided != divided) {
+            *slot = Some(Self::new(light, divided, cam));
+        }
+        slot.as_ref()
     }
 
     /// The intensity image (in [0, 1]) with the fall-off multiplied back in: the image as the
