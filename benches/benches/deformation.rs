@@ -65,6 +65,7 @@ fn warp_map(c: &mut Criterion) {
                 t0: t,
                 t,
                 albedo: 0.0,
+                sigma_m: 0.0,
             }
         })
         .collect();

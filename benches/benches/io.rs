@@ -33,6 +33,7 @@ fn io(c: &mut Criterion) {
                 t0: i / 1000,
                 t: i / 1000,
                 albedo: 0.4,
+                sigma_m: 0.0,
             })
             .collect(),
     );

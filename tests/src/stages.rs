@@ -60,6 +60,7 @@ impl Fuser for PointFuser {
                     t0: self.now,
                     t: self.now,
                     albedo: 0.0,
+                    sigma_m: 0.0,
                 });
                 added += 1;
             }

@@ -14,9 +14,9 @@ fn surfel() -> impl Strategy<Value = Surfel> {
         0.0f32..0.01,
         0u32..5000,
         0u32..5000,
-        0.0f32..1.0,
+        (0.0f32..1.0, 0.0f32..0.01),
     )
-        .prop_map(|(p, n, c, conf, r, t0, t, albedo)| Surfel {
+        .prop_map(|(p, n, c, conf, r, t0, t, (albedo, sigma_m))| Surfel {
             position_m: Point3::new(p[0], p[1], p[2]),
             normal: Vector3::new(n[0], n[1], n[2]),
             colour: c,
@@ -25,6 +25,7 @@ fn surfel() -> impl Strategy<Value = Surfel> {
             t0,
             t,
             albedo,
+            sigma_m,
         })
 }
 
@@ -48,7 +49,7 @@ fn the_header_is_what_point_cloud_tools_expect() {
     ply::write_surfels(&p, &SurfelSet::default()).unwrap();
     let text = String::from_utf8(std::fs::read(&p).unwrap()).unwrap();
     assert!(text.starts_with("ply\nformat binary_little_endian 1.0\n"));
-    for prop in ["float x", "float nx", "uchar red", "uchar blue", "float confidence", "float radius", "uint t0", "uint t\n"] {
+    for prop in ["float x", "float nx", "uchar red", "uchar blue", "float confidence", "float radius", "uint t0", "uint t\n", "float sigma"] {
         assert!(text.contains(&format!("property {prop}")), "{prop}");
     }
 }

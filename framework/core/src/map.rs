@@ -31,6 +31,10 @@ pub struct Surfel {
     /// radiance over the light model's irradiance, from the depth estimator); 0 = never
     /// observed (an estimator without a light model, such as `sensor`).
     pub albedo: f32,
+    /// σ of the depth measurements fused into it, metres: the inverse-variance mean
+    /// `√(Σα / Σ(α/σ²))` of their per-pixel σ weighed by confidence α (issue 17); 0 = its depth
+    /// carried no σ.
+    pub sigma_m: f32,
 }
 
 impl Surfel {
@@ -113,6 +117,10 @@ pub struct ModelView {
     pub t: Image<u32, 1>,
     /// Fused albedo of the visible surfel (0 where empty or never observed).
     pub albedo: GrayF32,
+    /// σ of the predicted depth, metres: the visible surfel's σ over the square root of its
+    /// confidence (the σ of a mean of that many measurements; issue 17); 0 where empty or where
+    /// its depth carried no σ.
+    pub sigma_m: DepthMap,
 }
 
 impl ModelView {
@@ -127,6 +135,7 @@ impl ModelView {
             t0: Image::new(width, height),
             t: Image::new(width, height),
             albedo: GrayF32::new(width, height),
+            sigma_m: DepthMap::new(width, height),
         }
     }
 
@@ -141,7 +150,17 @@ mod tests {
     use super::*;
 
     fn s(t0: u32, x: f32) -> Surfel {
-        Surfel { position_m: Point3::new(x, 0.0, 0.0), normal: Vector3::z(), colour: [0; 3], confidence: 1.0, radius_m: 0.001, t0, t: t0, albedo: 0.0 }
+        Surfel {
+            position_m: Point3::new(x, 0.0, 0.0),
+            normal: Vector3::z(),
+            colour: [0; 3],
+            confidence: 1.0,
+            radius_m: 0.001,
+            t0,
+            t: t0,
+            albedo: 0.0,
+            sigma_m: 0.0,
+        }
     }
 
     #[test]

@@ -74,6 +74,7 @@ mod tests {
                 t0: 0,
                 t,
                 albedo: 0.0,
+                sigma_m: 0.0,
             })
             .collect();
         SurfelSet { surfels }

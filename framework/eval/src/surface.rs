@@ -213,6 +213,7 @@ mod tests {
                     t0: 0,
                     t: 0,
                     albedo: 0.0,
+                    sigma_m: 0.0,
                 });
             }
         }

@@ -243,6 +243,7 @@ impl Phantom {
                         t0: 0,
                         t: 0,
                         albedo: capsule_slam_framework::image::luminance(a) as f32,
+                        sigma_m: 0.0,
                     }
                 })
             })

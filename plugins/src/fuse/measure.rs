@@ -90,6 +90,7 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
                     confidence: confidence(rho, half_diag),
                     radius_m: radius(v.z, f_mean, n.z),
                     albedo: albedo.map_or(0.0, |a| a.at(x, y)).max(0.0),
+                    sigma_m: sigma.map_or(0.0, |s| s.at(x, y)).max(0.0),
                 };
                 out.push(PixelMeasurement { x, y, m, z_live_m: v.z, n_cam: n, lambda: lambda / widen, ray_unit: ray / lambda });
             }
@@ -125,7 +126,8 @@ mod tests {
             assert_eq!(noisy.len(), exact.len());
             for (a, b) in exact.iter().zip(&noisy) {
                 assert!((a.lambda / b.lambda - widen).abs() < 1e-4, "λ {} against {}", a.lambda, b.lambda);
-                assert_eq!(a.m, b.m);
+                assert_eq!(a.m, Measurement { sigma_m: 0.0, ..b.m }, "only σ differs");
+                assert_eq!(b.m.sigma_m, sigma, "the measurement carries its pixel's σ");
             }
         }
         // A σ image of another size is left out with a warning.

@@ -51,6 +51,8 @@ pub struct Measurement {
     pub radius_m: f32,
     /// Observed albedo (0 = none).
     pub albedo: f32,
+    /// σ of its depth, metres (0 = none given).
+    pub sigma_m: f32,
 }
 
 impl Measurement {
@@ -65,6 +67,7 @@ impl Measurement {
             t0: now,
             t: now,
             albedo: self.albedo,
+            sigma_m: self.sigma_m,
         }
     }
 }
@@ -75,12 +78,26 @@ impl Measurement {
 /// surfel is marked seen at `now`. Albedo (an addition to the surfel of the paper) is averaged
 /// like colour over the measurements that observed one, and taken as it is by a surfel that
 /// had none.
+///
+/// Where both carry a depth σ (issue 17), position and normal, which the depth makes, are
+/// inverse-variance means instead, weights `α/σ²` (the measurement's `a·r` against the surfel's
+/// `c`, `r = (σ_s/σ_m)²`), so that a noisy frame moves the map less than a sharp one; with one σ
+/// throughout (r = 1) this is the rule above, bit for bit. The surfel's σ becomes that of its
+/// measurements, `σ_s·√((c + a)/(c + a·r))`; a surfel without σ takes the measurement's.
 pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
     let (c, a) = (s.confidence, m.confidence);
     if m.radius_m < radius_ratio * s.radius_m {
         let k = 1.0 / (c + a);
-        s.position_m = Point3::from((s.position_m.coords * c + m.position_m.coords * a) * k);
-        let n = s.normal * c + m.normal * a;
+        let q = if s.sigma_m > 0.0 && m.sigma_m > 0.0 { s.sigma_m / m.sigma_m } else { 1.0 };
+        let r = q * q;
+        let (ar, kr) = (a * r, 1.0 / (c + a * r));
+        s.position_m = Point3::from((s.position_m.coords * c + m.position_m.coords * ar) * kr);
+        if s.sigma_m > 0.0 {
+            s.sigma_m *= ((c + a) * kr).sqrt();
+        } else {
+            s.sigma_m = m.sigma_m;
+        }
+        let n = s.normal * c + m.normal * ar;
         if n.norm() > 1e-12 {
             s.normal = n.normalize();
         }
@@ -136,11 +153,25 @@ mod tests {
 
     #[test]
     fn merging_averages_by_confidence() {
-        let mut s =
-            Measurement { position_m: Point3::new(0.0, 0.0, 0.03), normal: -Vector3::z(), colour: [100, 0, 0], confidence: 3.0, radius_m: 1e-4, albedo: 0.0 }
-                .to_surfel(0);
-        let m =
-            Measurement { position_m: Point3::new(0.0, 0.0, 0.034), normal: -Vector3::z(), colour: [200, 0, 0], confidence: 1.0, radius_m: 1e-4, albedo: 0.5 };
+        let mut s = Measurement {
+            position_m: Point3::new(0.0, 0.0, 0.03),
+            normal: -Vector3::z(),
+            colour: [100, 0, 0],
+            confidence: 3.0,
+            radius_m: 1e-4,
+            albedo: 0.0,
+            sigma_m: 0.0,
+        }
+        .to_surfel(0);
+        let m = Measurement {
+            position_m: Point3::new(0.0, 0.0, 0.034),
+            normal: -Vector3::z(),
+            colour: [200, 0, 0],
+            confidence: 1.0,
+            radius_m: 1e-4,
+            albedo: 0.5,
+            sigma_m: 0.0,
+        };
         merge(&mut s, &m, 7, 1.5);
         assert!((s.position_m.z - 0.031).abs() < 1e-7);
         assert_eq!(s.colour[0], 125);
@@ -153,8 +184,54 @@ mod tests {
     }
 
     #[test]
+    fn a_noisy_measurement_moves_the_surfel_less_than_a_sharp_one() {
+        let at = |z: f32, sigma_m: f32| Measurement {
+            position_m: Point3::new(0.0, 0.0, z),
+            normal: -Vector3::z(),
+            colour: [0; 3],
+            confidence: 1.0,
+            radius_m: 1e-4,
+            albedo: 0.0,
+            sigma_m,
+        };
+        let fused = |sigma_new: f32| {
+            let mut s = at(0.030, 5e-4).to_surfel(0);
+            merge(&mut s, &at(0.032, sigma_new), 1, 1.5);
+            s
+        };
+        // Inverse-variance mean of 30 mm (σ 0.5 mm) and 32 mm: weights 1/σ².
+        for sigma_new in [1e-3f32, 5e-4, 2.5e-4] {
+            let (w0, w1) = (1.0 / (5e-4f64 * 5e-4), 1.0 / (f64::from(sigma_new) * f64::from(sigma_new)));
+            let z = (0.030 * w0 + 0.032 * w1) / (w0 + w1);
+            let s = fused(sigma_new);
+            assert!((f64::from(s.position_m.z) - z).abs() < 1e-7, "σ {sigma_new}: {} against {z}", s.position_m.z);
+            // The surfel's σ is its measurements' inverse-variance mean: √(Σα / Σ α/σ²).
+            let sigma = (2.0 / (w0 + w1)).sqrt();
+            assert!((f64::from(s.sigma_m) - sigma).abs() < 1e-9, "σ {} against {sigma}", s.sigma_m);
+        }
+        assert!(fused(1e-3).position_m.z < fused(5e-4).position_m.z && fused(5e-4).position_m.z < fused(2.5e-4).position_m.z);
+        // One σ throughout is the confidence-weighted rule bit for bit; without σ, the same.
+        let (mut a, mut b) = (at(0.030, 5e-4).to_surfel(0), at(0.030, 0.0).to_surfel(0));
+        merge(&mut a, &at(0.032, 5e-4), 1, 1.5);
+        merge(&mut b, &at(0.032, 0.0), 1, 1.5);
+        assert_eq!(a.position_m, b.position_m);
+        assert_eq!(b.sigma_m, 0.0);
+        // A surfel without σ takes the measurement's.
+        merge(&mut b, &at(0.031, 7e-4), 2, 1.5);
+        assert_eq!(b.sigma_m, 7e-4);
+    }
+
+    #[test]
     fn albedo_is_taken_then_averaged_and_kept_without_observation() {
-        let m = Measurement { position_m: Point3::new(0.0, 0.0, 0.03), normal: -Vector3::z(), colour: [0; 3], confidence: 1.0, radius_m: 1e-4, albedo: 0.0 };
+        let m = Measurement {
+            position_m: Point3::new(0.0, 0.0, 0.03),
+            normal: -Vector3::z(),
+            colour: [0; 3],
+            confidence: 1.0,
+            radius_m: 1e-4,
+            albedo: 0.0,
+            sigma_m: 0.0,
+        };
         let mut s = Measurement { confidence: 3.0, ..m }.to_surfel(0);
         merge(&mut s, &Measurement { albedo: 0.5, ..m }, 1, 1.5);
         assert_eq!(s.albedo, 0.5, "a surfel without albedo takes the first observation");

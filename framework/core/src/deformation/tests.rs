@@ -104,6 +104,7 @@ fn a_surfel_is_warped_by_the_time_the_deformation_names() {
         t0: 5,
         t: 110,
         albedo: 0.0,
+        sigma_m: 0.0,
     };
     let mut created = s;
     d.clone().warp_surfel(&mut created);
@@ -145,6 +146,7 @@ fn a_reach_leaves_far_points_alone_and_the_grid_agrees_with_the_scan() {
         t0: 0,
         t: 0,
         albedo: 0.0,
+        sigma_m: 0.0,
     };
     let warper = d.warper();
     for (x, y, moves) in [(0.012, 0.017, true), (0.031, -0.005, true), (0.06, 0.06, false), (-0.03, 0.01, false)] {

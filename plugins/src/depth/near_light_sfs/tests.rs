@@ -154,7 +154,13 @@ fn a_map_with_the_true_albedo_removes_the_texture_error() {
     for s in &mut surface.surfels {
         s.radius_m = 3.0e-4;
     }
-    let map = crate::fuse::surfel_cpu::predict(&surface.surfels, |_| true, &ph.camera, &pose, 0.001, 0.2);
+    let map = crate::fuse::surfel_cpu::predict(
+        &surface.surfels,
+        |_| true,
+        &ph.camera,
+        &pose,
+        &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 },
+    );
     let run = |source: AlbedoSource, img: &Rgb8| {
         let mut est = NearLightSfs::with_light(NearLightSfsParams { albedo_source: source, ..NearLightSfsParams::default() }, ph.light.clone());
         let out = est.depth(img, None, &ph.camera, Some(&map.albedo), None).unwrap();

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
 use super::surfel_rules::{Measurement, depth_gate, merge, normal_gate, reactivate};
-pub use splat::{IndexMap, predict};
+pub use splat::{IndexMap, SplatDepths, predict};
 
 /// The CPU surfel map.
 pub struct SurfelCpu {
@@ -146,7 +146,7 @@ impl Fuser for SurfelCpu {
         let now = (ctx.frame_index as u32).max(self.now);
         let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
         let include = |s: &Surfel| s.confidence >= stable && (s.is_active(now, dt) == (set == ModelSet::Active));
-        Ok(predict(&self.surfels, include, ctx.rig.camera(), t_world_cam, self.params.min_depth_m, self.params.max_depth_m))
+        Ok(predict(&self.surfels, include, ctx.rig.camera(), t_world_cam, &SplatDepths::of(&self.params)))
     }
 
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {

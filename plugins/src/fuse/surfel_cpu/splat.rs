@@ -1,14 +1,16 @@
-//! Rendering surfels into a camera: the index map (each surfel a point, for association) and
-//! the splatted prediction (each surfel a disc, ray–disc intersection per pixel, nearest wins).
-//! Both resolve the z-test with an atomic minimum over (depth bits, index), so they are parallel
-//! and deterministic.
+//! Rendering surfels into a camera: the index map (each surfel a point, for association; nearest
+//! wins) and the splatted prediction (each surfel a disc, ray–disc intersection per pixel, an
+//! ε-z-buffer picks the disc, and the pixel gets its depth's σ). Both resolve their tests with
+//! atomic minima and maxima over (key, index), so they are parallel and deterministic.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::{Iso3, ModelView, Surfel};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
+
+use crate::fuse::surfel_params::SurfelParams;
 
 const EMPTY: u64 = u64::MAX;
 
@@ -70,66 +72,135 @@ impl IndexMap {
     }
 }
 
-/// Splats the surfels `include` accepts as discs into a prediction seen from `t_world_cam`.
-pub fn predict(
-    surfels: &[Surfel],
-    include: impl Fn(&Surfel) -> bool + Sync,
-    cam: &PinholeCamera,
-    t_world_cam: &Iso3,
-    min_depth_m: f32,
-    max_depth_m: f32,
-) -> ModelView {
-    let (w, h) = (cam.width, cam.height);
-    let zbuf: Vec<AtomicU64> = (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect();
-    let t_cam_world = t_world_cam.inverse().cast::<f32>();
-    let (fx, fy, cx, cy) = (cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32);
-    surfels.par_iter().enumerate().for_each(|(i, s)| {
-        if !include(s) {
-            return;
-        }
+/// The depth limits of a splatted prediction, in metres along the camera's z axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SplatDepths {
+    /// Intersections at or nearer than this are ignored.
+    pub min_m: f32,
+    /// Intersections beyond this are ignored.
+    pub max_m: f32,
+    /// The ε of the ε-z-buffer: discs within this of the nearest at a pixel are one surface.
+    pub blend_m: f32,
+}
+
+impl SplatDepths {
+    /// The limits a map's parameters give.
+    pub fn of(params: &SurfelParams) -> Self {
+        Self { min_m: params.min_depth_m, max_m: params.max_depth_m, blend_m: params.splat_blend_depth_m }
+    }
+}
+
+/// A confidence as a key whose unsigned order is the float order (negative values flipped),
+/// so that an atomic maximum picks the most confident; `fuse.wgsl`'s `conf_key` is the same.
+fn conf_key(confidence: f32) -> u32 {
+    let b = confidence.to_bits();
+    if b >> 31 == 1 { !b } else { b | 0x8000_0000 }
+}
+
+/// One disc in the camera: its centre, normal and radius, and the pixel box it can cover.
+struct Disc {
+    p: Vector3<f32>,
+    n: Vector3<f32>,
+    np: f32,
+    r2: f32,
+    x: (i64, i64),
+    y: (i64, i64),
+}
+
+impl Disc {
+    /// The disc of `s` seen from `t_cam_world`, or `None` when its centre is outside the depth
+    /// range.
+    fn new(s: &Surfel, t_cam_world: &nalgebra::Isometry3<f32>, cam: &PinholeCamera, depths: &SplatDepths) -> Option<Self> {
         let p = t_cam_world * s.position_m;
-        if p.z <= min_depth_m || p.z > max_depth_m {
-            return;
+        if p.z <= depths.min_m || p.z > depths.max_m {
+            return None;
         }
         let n = t_cam_world.rotation * s.normal;
-        let (u, v) = (fx * p.x / p.z + cx, fy * p.y / p.z + cy);
+        let (fx, fy) = (cam.fx as f32, cam.fy as f32);
+        let (u, v) = (fx * p.x / p.z + cam.cx as f32, fy * p.y / p.z + cam.cy as f32);
         // Bounding box of the disc: a disc of radius r at depth z projects inside a circle of
         // r·f/z pixels (tilting only shrinks it), widened by a quarter for perspective (capped).
         let r_px = s.radius_m * fx.max(fy) / p.z;
         let half = (1.25 * r_px).ceil().min(12.0) as i64;
         let (u0, v0) = (u.round() as i64, v.round() as i64);
-        let np = n.dot(&p.coords);
-        let r2 = s.radius_m * s.radius_m;
-        for y in (v0 - half).max(0)..=(v0 + half).min(h as i64 - 1) {
-            for x in (u0 - half).max(0)..=(u0 + half).min(w as i64 - 1) {
-                // Ray through the pixel centre, z = 1; plane n·(X − p) = 0.
-                let d = Vector3::new((x as f32 - cx) / fx, (y as f32 - cy) / fy, 1.0);
-                let nd = n.dot(&d);
-                if nd.abs() < 1e-6 {
-                    continue;
-                }
-                let t = np / nd;
-                if t <= min_depth_m || t > max_depth_m || (d * t - p.coords).norm_squared() > r2 {
-                    continue;
-                }
-                // Read first: most candidates lose the z-test, and a plain load is far cheaper
-                // than an atomic read-modify-write.
-                let (cell, v) = (&zbuf[y as usize * w + x as usize], pack(t, i));
-                if v < cell.load(Ordering::Relaxed) {
-                    cell.fetch_min(v, Ordering::Relaxed);
+        let x = ((u0 - half).max(0), (u0 + half).min(cam.width as i64 - 1));
+        let y = ((v0 - half).max(0), (v0 + half).min(cam.height as i64 - 1));
+        Some(Self { p: p.coords, n, np: n.dot(&p.coords), r2: s.radius_m * s.radius_m, x, y })
+    }
+
+    /// Depth of the intersection of pixel (x, y)'s ray with the disc, if it hits within range.
+    fn hit(&self, x: i64, y: i64, cam: &PinholeCamera, depths: &SplatDepths) -> Option<f32> {
+        // Ray through the pixel centre, z = 1; plane n·(X − p) = 0.
+        let d = Vector3::new((x as f32 - cam.cx as f32) / cam.fx as f32, (y as f32 - cam.cy as f32) / cam.fy as f32, 1.0);
+        let nd = self.n.dot(&d);
+        if nd.abs() < 1e-6 {
+            return None;
+        }
+        let t = self.np / nd;
+        (t > depths.min_m && t <= depths.max_m && (d * t - self.p).norm_squared() <= self.r2).then_some(t)
+    }
+
+    /// Calls `f(pixel, depth)` for every pixel the disc covers.
+    fn for_each_hit(&self, cam: &PinholeCamera, depths: &SplatDepths, mut f: impl FnMut(usize, f32)) {
+        for y in self.y.0..=self.y.1 {
+            for x in self.x.0..=self.x.1 {
+                if let Some(t) = self.hit(x, y, cam, depths) {
+                    f(y as usize * cam.width + x as usize, t);
                 }
             }
         }
+    }
+}
+
+/// Splats the surfels `include` accepts as discs into a prediction seen from `t_world_cam`.
+///
+/// Each pixel shows one disc, chosen by an ε-z-buffer (Zwicker et al. 2001, "Surface
+/// splatting", §5; Pfister et al. 2000): the discs whose ray intersection lies within
+/// `depths.blend_m` of the nearest are taken as one surface, and the most confident of them
+/// wins (ties: the lowest index); the pixel gets its intersection depth, normal and colour.
+/// ElasticFusion's nearest-wins z-test (its `combo_splat.frag`) is `blend_m = 0`: with noisy
+/// depth it shows the surfels that noise put in front of the wall, a bias toward the camera
+/// of about one noise σ that the tracker then follows (`docs/results/depth-noise.md`).
+///
+/// Three parallel passes with atomics (nearest depth; most confident within ε; the winner's
+/// intersection), so the result does not depend on the thread schedule.
+pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam: &PinholeCamera, t_world_cam: &Iso3, depths: &SplatDepths) -> ModelView {
+    let (w, h) = (cam.width, cam.height);
+    let t_cam_world = t_world_cam.inverse().cast::<f32>();
+    let disc = |s: &Surfel| if include(s) { Disc::new(s, &t_cam_world, cam, depths) } else { None };
+    // 1: the nearest intersection per pixel (positive f32 bits order as the values).
+    let front: Vec<AtomicU32> = (0..w * h).map(|_| AtomicU32::new(u32::MAX)).collect();
+    surfels.par_iter().filter_map(disc).for_each(|d| {
+        d.for_each_hit(cam, depths, |k, t| {
+            // Read first: most candidates lose, and a load is far cheaper than an atomic
+            // read-modify-write.
+            if t.to_bits() < front[k].load(Ordering::Relaxed) {
+                front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
+            }
+        })
     });
+    // 2: the most confident disc within ε of it: (confidence key << 32 | !index), maximum.
+    let best: Vec<AtomicU64> = (0..w * h).map(|_| AtomicU64::new(0)).collect();
+    surfels.par_iter().enumerate().for_each(|(i, s)| {
+        let Some(d) = disc(s) else { return };
+        let key = (u64::from(conf_key(s.confidence)) << 32) | u64::from(!(i as u32));
+        d.for_each_hit(cam, depths, |k, t| {
+            if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
+                best[k].fetch_max(key, Ordering::Relaxed);
+            }
+        })
+    });
+    // 3: the winner's own intersection, normal and colour.
     let mut view = ModelView::empty(w, h, *t_world_cam);
-    for (k, z) in zbuf.iter().enumerate() {
-        let v = z.load(Ordering::Relaxed);
-        if v == EMPTY {
+    for (k, b) in best.iter().enumerate() {
+        let key = b.load(Ordering::Relaxed);
+        if key == 0 {
             continue;
         }
-        let (depth, i) = unpack(v);
-        let (x, y) = (k % w, k / w);
+        let i = !(key as u32) as usize;
         let s = &surfels[i];
+        let (x, y) = (k % w, k / w);
+        let Some(depth) = disc(s).and_then(|d| d.hit(x as i64, y as i64, cam, depths)) else { continue };
         let n = t_cam_world.rotation * s.normal;
         *view.depth_m.at_mut(x, y) = depth;
         view.normals_cam.set_pixel(x, y, [n.x, n.y, n.z]);
@@ -138,6 +209,13 @@ pub fn predict(
         *view.t0.at_mut(x, y) = s.t0;
         *view.t.at_mut(x, y) = s.t;
         *view.albedo.at_mut(x, y) = s.albedo;
+        *view.sigma_m.at_mut(x, y) = predicted_sigma(s.sigma_m, s.confidence);
     }
     view
+}
+
+/// σ of a predicted depth: a surfel's σ over √confidence, the σ of the mean of that many
+/// measurements (confidence below 1 counts as 1); `fuse.wgsl`'s `resolve` computes the same.
+pub fn predicted_sigma(sigma_m: f32, confidence: f32) -> f32 {
+    sigma_m / confidence.max(1.0).sqrt()
 }

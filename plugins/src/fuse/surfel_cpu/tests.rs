@@ -138,3 +138,49 @@ fn observed_albedo_is_fused_and_predicted_back() {
     let (p99, n) = albedo_error_p99(&again, &albedo);
     assert!(n > 10_000 && p99 < 0.01, "after a frame without albedo: p99 {p99} over {n} pixels");
 }
+
+/// A disc facing the camera on its axis at `z_m`, of radius 2 mm.
+fn disc_at(z_m: f32, confidence: f32, colour: u8) -> capsule_slam_framework::Surfel {
+    capsule_slam_framework::Surfel {
+        position_m: nalgebra::Point3::new(0.0, 0.0, z_m),
+        normal: nalgebra::Vector3::new(0.0, 0.0, -1.0),
+        colour: [colour; 3],
+        confidence,
+        radius_m: 0.002,
+        t0: 0,
+        t: 0,
+        albedo: 0.0,
+        sigma_m: 0.0,
+    }
+}
+
+#[test]
+fn the_splat_shows_the_most_confident_disc_within_blend_depth_of_the_nearest() {
+    use super::{SplatDepths, predict};
+    let cam = capsule_slam_framework::camera::PinholeCamera::new(64, 64, 60.0, 60.0, 31.5, 31.5);
+    let pose = capsule_slam_framework::Iso3::identity();
+    // A noisy, weak disc in front; the well-fused wall 0.6 mm behind it; a very confident disc
+    // 3 mm further (another surface).
+    let mut discs = [disc_at(0.0500, 2.0, 10), disc_at(0.0506, 30.0, 20), disc_at(0.0536, 500.0, 30)];
+    discs[1].sigma_m = 6e-4;
+    let centre = |d: &SplatDepths| {
+        let v = predict(&discs, |_| true, &cam, &pose, d);
+        let k = 32 * 64 + 32;
+        (v.depth_m.data()[k], v.colour.pixel(32, 32)[0], v.confidence.data()[k])
+    };
+    let (z, colour, conf) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    assert_eq!((colour, conf), (20, 30.0), "the most confident disc within 1 mm is shown");
+    assert!((z - 0.0506).abs() < 1e-6, "at its own depth, not the nearest's: {z}");
+    let v = predict(&discs, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    let sigma = v.sigma_m.at(32, 32);
+    assert!((sigma - 6e-4 / 30f32.sqrt()).abs() < 1e-9, "the σ of a mean of 30 measurements: {sigma}");
+    let (z, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.0 });
+    assert_eq!(colour, 10, "ε = 0 is ElasticFusion's nearest-wins z-test");
+    assert!((z - 0.05).abs() < 1e-6, "{z}");
+    let (_, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.01 });
+    assert_eq!(colour, 30, "a wider ε reaches the third disc");
+    // Equal confidence: the lowest index wins, whatever the depth order.
+    let tie = [disc_at(0.0506, 5.0, 1), disc_at(0.0500, 5.0, 2)];
+    let v = predict(&tie, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    assert_eq!(v.colour.pixel(32, 32)[0], 1);
+}

@@ -67,6 +67,7 @@ pub struct DeviceMap {
     meas: wgpu::Buffer,
     zdepth: wgpu::Buffer,
     zid: wgpu::Buffer,
+    zconf: wgpu::Buffer,
     counters: wgpu::Buffer,
     view: wgpu::Buffer,
     staging_counters: wgpu::Buffer,
@@ -95,13 +96,14 @@ impl DeviceMap {
         let meas = buffer(&gpu, "measurements", px * MEAS_BYTES, STORAGE);
         let zdepth = buffer(&gpu, "zdepth", px * 4, STORAGE);
         let zid = buffer(&gpu, "zid", px * 4, STORAGE);
+        let zconf = buffer(&gpu, "zconf", px * 4, STORAGE);
         let counters = buffer(&gpu, "counters", COUNTER_SLOTS * 4, STORAGE);
         let view = buffer(&gpu, "view", px * VIEW_BYTES, STORAGE);
         let staging_counters = buffer(&gpu, "staging counters", COUNTER_SLOTS * 4, STAGING);
         let staging_view = buffer(&gpu, "staging view", px * VIEW_BYTES, STAGING);
         let cap = cap.max(1);
         Ok(Self {
-            sized: Self::sized(&gpu, &kernels, cap, px as u32, [&uniforms, &meas, &zdepth, &zid, &counters, &view])?,
+            sized: Self::sized(&gpu, &kernels, cap, px as u32, [&uniforms, &meas, &zdepth, &zid, &counters, &view, &zconf])?,
             gpu,
             kernels,
             width,
@@ -110,6 +112,7 @@ impl DeviceMap {
             meas,
             zdepth,
             zid,
+            zconf,
             counters,
             view,
             staging_counters,
@@ -120,7 +123,7 @@ impl DeviceMap {
         })
     }
 
-    fn sized(gpu: &Gpu, kernels: &Kernels, cap: u32, pixels: u32, fixed: [&wgpu::Buffer; 6]) -> Result<Sized, StageError> {
+    fn sized(gpu: &Gpu, kernels: &Kernels, cap: u32, pixels: u32, fixed: [&wgpu::Buffer; 7]) -> Result<Sized, StageError> {
         let bytes = u64::from(cap) * SURFEL_BYTES;
         if bytes > gpu.limits.max_storage_buffer_binding_size {
             return Err(gpu_error(format!(
@@ -135,9 +138,9 @@ impl DeviceMap {
         let flags = buffer(gpu, "flags", flag_len * 4, STORAGE);
         let offsets = buffer(gpu, "offsets", flag_len * 4, STORAGE);
         let blocks = buffer(gpu, "blocks", flag_len.div_ceil(u64::from(WORKGROUP)) * 4, STORAGE);
-        let [uniforms, meas, zdepth, zid, counters, view] = fixed;
+        let [uniforms, meas, zdepth, zid, counters, view, zconf] = fixed;
         let bind = |a: &wgpu::Buffer, b: &wgpu::Buffer| {
-            let res = [uniforms, a, b, meas, zdepth, zid, &winner, &flags, &offsets, &blocks, counters, view];
+            let res = [uniforms, a, b, meas, zdepth, zid, &winner, &flags, &offsets, &blocks, counters, view, zconf];
             let entries: Vec<wgpu::BindGroupEntry> =
                 res.iter().enumerate().map(|(i, buf)| wgpu::BindGroupEntry { binding: i as u32, resource: buf.as_entire_binding() }).collect();
             gpu.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some("surfel-gpu"), layout: &kernels.layout, entries: &entries })
@@ -167,7 +170,7 @@ impl DeviceMap {
             return Ok(());
         }
         let cap = needed.max(self.sized.cap.saturating_mul(2));
-        let fixed = [&self.uniforms, &self.meas, &self.zdepth, &self.zid, &self.counters, &self.view];
+        let fixed = [&self.uniforms, &self.meas, &self.zdepth, &self.zid, &self.counters, &self.view, &self.zconf];
         let sized = Self::sized(&self.gpu, &self.kernels, cap, (self.width * self.height) as u32, fixed)?;
         let mut enc = self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow") });
         enc.copy_buffer_to_buffer(&self.sized.surf[self.cur], 0, &sized.surf[0], 0, u64::from(self.n) * SURFEL_BYTES);
@@ -211,7 +214,7 @@ impl DeviceMap {
             scan_n: 0,
             scan_slot: 0,
             add_base: self.sized.cap,
-            pad: 0,
+            blend: p.splat_blend_depth_m,
         }
     }
 
@@ -314,6 +317,7 @@ impl DeviceMap {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("predict"), timestamp_writes: None });
             self.dispatch(&mut pass, Kernel::ClearZ, px)?;
             self.dispatch(&mut pass, Kernel::SplatDepth, u64::from(self.n))?;
+            self.dispatch(&mut pass, Kernel::SplatConf, u64::from(self.n))?;
             self.dispatch(&mut pass, Kernel::SplatId, u64::from(self.n))?;
             self.dispatch(&mut pass, Kernel::Resolve, px)?;
         }
@@ -333,6 +337,7 @@ impl DeviceMap {
             *view.t0.at_mut(x, y) = p.t0;
             *view.t.at_mut(x, y) = p.t;
             *view.albedo.at_mut(x, y) = p.albedo;
+            *view.sigma_m.at_mut(x, y) = p.sigma;
         }
         Ok(view)
     }

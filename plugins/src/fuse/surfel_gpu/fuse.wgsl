@@ -1,8 +1,10 @@
 // surfel-gpu: the surfel map on the device. Every kernel mirrors a function of
 // plugins/src/fuse/surfel_rules.rs or surfel_cpu/ line for line (same f32 operations in the
-// same order), and every z-test is resolved in two passes (atomic minimum of the depth bits,
-// then of the index among the surfels at that depth), which equals the CPU's atomic minimum
-// of (depth bits << 32 | index): the map and its predictions are deterministic.
+// same order). The index map's z-test is resolved in two passes (atomic minimum of the depth
+// bits, then of the index among the surfels at that depth), which equals the CPU's atomic
+// minimum of (depth bits << 32 | index); the prediction's ε-z-buffer in three (nearest depth,
+// most confident within ε, lowest index), which equals the CPU's atomic maximum of
+// (confidence key << 32 | !index): the map and its predictions are deterministic.
 
 struct Surfel {
     pos: vec3<f32>,
@@ -13,6 +15,7 @@ struct Surfel {
     t0: u32,
     t: u32,
     albedo: f32,
+    sigma: f32,
 }
 
 struct Measurement {
@@ -27,7 +30,7 @@ struct Measurement {
     n_cam: vec3<f32>,
     lambda: f32,
     ray: vec3<f32>,
-    pad: f32,
+    sigma: f32,
 }
 
 struct ViewPixel {
@@ -40,6 +43,7 @@ struct ViewPixel {
     t0: u32,
     t: u32,
     albedo: f32,
+    sigma: f32,
 }
 
 struct Params {
@@ -49,7 +53,7 @@ struct Params {
     now: u32, delta_t: u32, life: u32, model_set: u32,
     stable: f32, min_depth: f32, max_depth: f32, depth_gate: f32,
     normal_gate: f32, bypass_nz: f32, radius_ratio: f32, scan_base: u32,
-    scan_n: u32, scan_slot: u32, add_base: u32, pad: u32,
+    scan_n: u32, scan_slot: u32, add_base: u32, blend: f32,
 }
 
 const EMPTY: u32 = 0xffffffffu;
@@ -66,6 +70,7 @@ const EMPTY: u32 = 0xffffffffu;
 @group(0) @binding(9) var<storage, read_write> blocks: array<u32>;
 @group(0) @binding(10) var<storage, read_write> counters: array<atomic<u32>>;
 @group(0) @binding(11) var<storage, read_write> view: array<ViewPixel>;
+@group(0) @binding(12) var<storage, read_write> zconf: array<atomic<u32>>;
 
 var<workgroup> sh: array<u32, 256>;
 
@@ -101,6 +106,7 @@ fn clear_z(@builtin(global_invocation_id) g: vec3<u32>) {
     if (k >= P.width * P.height) { return; }
     atomicStore(&zdepth[k], EMPTY);
     atomicStore(&zid[k], EMPTY);
+    atomicStore(&zconf[k], 0u);
 }
 
 // The index map (surfel_cpu::IndexMap::render): active surfels as 1-pixel points.
@@ -197,8 +203,13 @@ fn merge(@builtin(global_invocation_id) g: vec3<u32>) {
     let a = m.conf;
     if (m.radius < P.radius_ratio * s.radius) {
         let k = 1.0 / (c + a);
-        s.pos = (s.pos * c + m.pos * a) * k;
-        let n = s.nrm * c + m.nrm * a;
+        let q = select(1.0, s.sigma / m.sigma, s.sigma > 0.0 && m.sigma > 0.0);
+        let r = q * q;
+        let ar = a * r;
+        let kr = 1.0 / (c + a * r);
+        s.pos = (s.pos * c + m.pos * ar) * kr;
+        s.sigma = select(m.sigma, s.sigma * sqrt((c + a) * kr), s.sigma > 0.0);
+        let n = s.nrm * c + m.nrm * ar;
         if (length(n) > 1e-12) {
             s.nrm = normalize(n);
         }
@@ -294,7 +305,7 @@ fn append(@builtin(global_invocation_id) g: vec3<u32>) {
     if (flags[P.add_base + j] == 0u) { return; }
     let m = meas[j];
     let at = atomicLoad(&counters[SLOT_KEPT]) + offsets[P.add_base + j];
-    surf_b[at] = Surfel(m.pos, m.conf, m.nrm, m.radius, m.colour, P.now, P.now, m.albedo);
+    surf_b[at] = Surfel(m.pos, m.conf, m.nrm, m.radius, m.colour, P.now, P.now, m.albedo, m.sigma);
 }
 
 // Active and stable counts of surf_b[.. kept + added].
@@ -308,43 +319,83 @@ fn count(@builtin(global_invocation_id) g: vec3<u32>) {
 }
 
 // The prediction (surfel_cpu::predict): stable surfels of the set as discs, ray–disc
-// intersection per pixel, nearest wins.
+// intersection per pixel, an ε-z-buffer: the most confident disc within P.blend of the nearest
+// wins (ties: the lowest index), in three passes (nearest depth; most confident; its index).
 fn splat_include(s: Surfel) -> bool {
     return s.conf >= P.stable && (is_active(s) == (P.model_set == 0u));
 }
 
-fn splat(i: u32, second: bool) {
-    let s = surf_a[i];
-    if (!splat_include(s)) { return; }
+// surfel_cpu::splat::conf_key: unsigned order = float order.
+fn conf_key(c: f32) -> u32 {
+    let b = bitcast<u32>(c);
+    return select(b | 0x80000000u, ~b, (b >> 31u) == 1u);
+}
+
+struct Disc {
+    p: vec3<f32>,
+    n: vec3<f32>,
+    np: f32,
+    r2: f32,
+    lo: vec2<i32>,
+    hi: vec2<i32>,
+    ok: bool,
+}
+
+// surfel_cpu::splat::Disc::new.
+fn disc(s: Surfel) -> Disc {
+    var d: Disc;
+    d.ok = false;
     let p = to_cam(s.pos);
-    if (p.z <= P.min_depth || p.z > P.max_depth) { return; }
-    let n = rot_cam(s.nrm);
+    if (p.z <= P.min_depth || p.z > P.max_depth) { return d; }
+    d.p = p;
+    d.n = rot_cam(s.nrm);
     let u = P.fx * p.x / p.z + P.cx;
     let v = P.fy * p.y / p.z + P.cy;
     let r_px = s.radius * max(P.fx, P.fy) / p.z;
     let half = i32(min(ceil(1.25 * r_px), 12.0));
     let u0 = i32(round_away(u));
     let v0 = i32(round_away(v));
-    let np = dot(n, p);
-    let r2 = s.radius * s.radius;
-    let ya = max(v0 - half, 0);
-    let yb = min(v0 + half, i32(P.height) - 1);
-    let xa = max(u0 - half, 0);
-    let xb = min(u0 + half, i32(P.width) - 1);
-    for (var y = ya; y <= yb; y = y + 1) {
-        for (var x = xa; x <= xb; x = x + 1) {
-            let d = vec3<f32>((f32(x) - P.cx) / P.fx, (f32(y) - P.cy) / P.fy, 1.0);
-            let nd = dot(n, d);
-            if (abs(nd) < 1e-6) { continue; }
-            let t = np / nd;
-            let e = d * t - p;
-            if (t <= P.min_depth || t > P.max_depth || dot(e, e) > r2) { continue; }
+    d.np = dot(d.n, p);
+    d.r2 = s.radius * s.radius;
+    d.lo = vec2<i32>(max(u0 - half, 0), max(v0 - half, 0));
+    d.hi = vec2<i32>(min(u0 + half, i32(P.width) - 1), min(v0 + half, i32(P.height) - 1));
+    d.ok = true;
+    return d;
+}
+
+// surfel_cpu::splat::Disc::hit: the intersection depth, or -1 for a miss.
+fn hit(d: Disc, x: i32, y: i32) -> f32 {
+    let r = vec3<f32>((f32(x) - P.cx) / P.fx, (f32(y) - P.cy) / P.fy, 1.0);
+    let nd = dot(d.n, r);
+    if (abs(nd) < 1e-6) { return -1.0; }
+    let t = d.np / nd;
+    let e = r * t - d.p;
+    if (t <= P.min_depth || t > P.max_depth || dot(e, e) > d.r2) { return -1.0; }
+    return t;
+}
+
+// step 0: nearest depth; 1: most confident within P.blend of it; 2: the lowest index of those.
+fn splat(i: u32, step: u32) {
+    let s = surf_a[i];
+    if (!splat_include(s)) { return; }
+    let d = disc(s);
+    if (!d.ok) { return; }
+    let key = conf_key(s.conf);
+    for (var y = d.lo.y; y <= d.hi.y; y = y + 1) {
+        for (var x = d.lo.x; x <= d.hi.x; x = x + 1) {
+            let t = hit(d, x, y);
+            if (t < 0.0) { continue; }
             let k = u32(y) * P.width + u32(x);
             let bits = bitcast<u32>(t);
-            if (second) {
-                if (atomicLoad(&zdepth[k]) == bits) { atomicMin(&zid[k], i); }
-            } else if (bits < atomicLoad(&zdepth[k])) {
-                atomicMin(&zdepth[k], bits);
+            if (step == 0u) {
+                if (bits < atomicLoad(&zdepth[k])) { atomicMin(&zdepth[k], bits); }
+                continue;
+            }
+            if (t > bitcast<f32>(atomicLoad(&zdepth[k])) + P.blend) { continue; }
+            if (step == 1u) {
+                if (key > atomicLoad(&zconf[k])) { atomicMax(&zconf[k], key); }
+            } else if (key == atomicLoad(&zconf[k])) {
+                atomicMin(&zid[k], i);
             }
         }
     }
@@ -353,13 +404,19 @@ fn splat(i: u32, second: bool) {
 @compute @workgroup_size(256)
 fn splat_depth(@builtin(global_invocation_id) g: vec3<u32>) {
     if (g.x >= P.n_surfels) { return; }
-    splat(g.x, false);
+    splat(g.x, 0u);
+}
+
+@compute @workgroup_size(256)
+fn splat_conf(@builtin(global_invocation_id) g: vec3<u32>) {
+    if (g.x >= P.n_surfels) { return; }
+    splat(g.x, 1u);
 }
 
 @compute @workgroup_size(256)
 fn splat_id(@builtin(global_invocation_id) g: vec3<u32>) {
     if (g.x >= P.n_surfels) { return; }
-    splat(g.x, true);
+    splat(g.x, 2u);
 }
 
 @compute @workgroup_size(256)
@@ -367,11 +424,15 @@ fn resolve(@builtin(global_invocation_id) g: vec3<u32>) {
     let k = g.x;
     if (k >= P.width * P.height) { return; }
     let i = atomicLoad(&zid[k]);
-    if (i == EMPTY) {
-        view[k] = ViewPixel(0.0, 0.0, 0.0, 0.0, 0u, 0.0, 0u, 0u, 0.0);
+    var t = -1.0;
+    if (i != EMPTY) { t = hit(disc(surf_a[i]), i32(k % P.width), i32(k / P.width)); }
+    if (t < 0.0) {
+        view[k] = ViewPixel(0.0, 0.0, 0.0, 0.0, 0u, 0.0, 0u, 0u, 0.0, 0.0);
         return;
     }
     let s = surf_a[i];
     let n = rot_cam(s.nrm);
-    view[k] = ViewPixel(bitcast<f32>(atomicLoad(&zdepth[k])), n.x, n.y, n.z, s.colour, s.conf, s.t0, s.t, s.albedo);
+    // surfel_cpu::splat::predicted_sigma.
+    let sigma = s.sigma / sqrt(max(s.conf, 1.0));
+    view[k] = ViewPixel(t, n.x, n.y, n.z, s.colour, s.conf, s.t0, s.t, s.albedo, sigma);
 }

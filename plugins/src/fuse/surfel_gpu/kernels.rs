@@ -67,6 +67,8 @@ pub enum Kernel {
     Count,
     /// `splat_depth`.
     SplatDepth,
+    /// `splat_conf`.
+    SplatConf,
     /// `splat_id`.
     SplatId,
     /// `resolve`.
@@ -74,7 +76,7 @@ pub enum Kernel {
 }
 
 /// The entry points, indexed by [`Kernel`].
-const KERNELS: [&str; 15] = [
+const KERNELS: [&str; 16] = [
     "clear_z",
     "index_depth",
     "index_id",
@@ -88,6 +90,7 @@ const KERNELS: [&str; 15] = [
     "append",
     "count",
     "splat_depth",
+    "splat_conf",
     "splat_id",
     "resolve",
 ];
@@ -123,7 +126,7 @@ pub fn compile(gpu: &Gpu) -> Result<Kernels, String> {
         ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: None },
         count: None,
     }];
-    entries.extend((1..=11).map(|b| storage(b, b == 3)));
+    entries.extend((1..=12).map(|b| storage(b, b == 3)));
     let layout = d.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some("surfel-gpu"), entries: &entries });
     let pipeline_layout =
         d.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("surfel-gpu"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });

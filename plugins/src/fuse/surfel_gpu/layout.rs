@@ -8,7 +8,8 @@ use nalgebra::{Point3, Vector3};
 
 use crate::fuse::measure::PixelMeasurement;
 
-/// A surfel as the kernels see it (48 bytes; `Surfel` in `fuse.wgsl`).
+/// A surfel as the kernels see it (64 bytes: WGSL rounds a struct with a `vec3` up to 16;
+/// `Surfel` in `fuse.wgsl`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct GpuSurfel {
@@ -20,6 +21,8 @@ pub struct GpuSurfel {
     t0: u32,
     t: u32,
     albedo: f32,
+    sigma: f32,
+    pad: [f32; 3],
 }
 
 pub fn pack_colour(c: [u8; 3]) -> u32 {
@@ -41,6 +44,8 @@ impl From<&Surfel> for GpuSurfel {
             t0: s.t0,
             t: s.t,
             albedo: s.albedo,
+            sigma: s.sigma_m,
+            pad: [0.0; 3],
         }
     }
 }
@@ -56,6 +61,7 @@ impl From<&GpuSurfel> for Surfel {
             t0: s.t0,
             t: s.t,
             albedo: s.albedo,
+            sigma_m: s.sigma,
         }
     }
 }
@@ -75,7 +81,7 @@ pub struct GpuMeasurement {
     n_cam: [f32; 3],
     lambda: f32,
     ray: [f32; 3],
-    pad: f32,
+    sigma: f32,
 }
 
 impl GpuMeasurement {
@@ -94,12 +100,12 @@ impl GpuMeasurement {
             n_cam: p.n_cam.into(),
             lambda: p.lambda,
             ray: p.ray_unit.into(),
-            pad: 0.0,
+            sigma: m.sigma_m,
         }
     }
 }
 
-/// One predicted pixel (36 bytes; `ViewPixel` in `fuse.wgsl`).
+/// One predicted pixel (40 bytes; `ViewPixel` in `fuse.wgsl`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct ViewPixel {
@@ -112,6 +118,7 @@ pub struct ViewPixel {
     pub t0: u32,
     pub t: u32,
     pub albedo: f32,
+    pub sigma: f32,
 }
 
 /// The uniforms (160 bytes; `Params` in `fuse.wgsl`).
@@ -142,5 +149,5 @@ pub struct Uniforms {
     pub scan_n: u32,
     pub scan_slot: u32,
     pub add_base: u32,
-    pub pad: u32,
+    pub blend: f32,
 }

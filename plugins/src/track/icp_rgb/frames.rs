@@ -25,7 +25,8 @@ pub struct Level {
     pub gx: GrayF32,
     /// Intensity gradient along y, per pixel.
     pub gy: GrayF32,
-    /// σ of the depth per pixel, metres (live frames whose depth stage gave one).
+    /// σ of the depth per pixel, metres (live frames whose depth stage gave one; references
+    /// whose model or previous frame carries one).
     pub sigma: Option<DepthMap>,
     /// Correlation length of the depth error, pixels of this level.
     pub sigma_correlation_px: f64,
@@ -94,42 +95,48 @@ pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthP
     }
     let mut out = pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep);
     if let Some(sigma) = &frame.depth_sigma_m {
-        // Level l samples every 2^l-th pixel's σ: the mean of a 2 × 2 block of a spatially
-        // correlated error (a stereo or smooth error) is hardly better than one pixel.
-        for (l, level) in out.iter_mut().enumerate() {
-            let (w, h) = level.depth.size();
-            let step = 1usize << l;
-            level.sigma = Some(DepthMap::from_fn(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
-            level.sigma_correlation_px = frame.depth_sigma_correlation_px / step as f64;
-        }
+        set_sigma(&mut out, sigma, frame.depth_sigma_correlation_px);
     }
     out
 }
 
+/// Gives every level the σ of its pixels from the level-0 σ image. Level l samples every
+/// 2^l-th pixel's σ: the mean of a 2 × 2 block of a spatially correlated error (a stereo or
+/// smooth error) is hardly better than one pixel.
+fn set_sigma(levels: &mut [Level], sigma: &DepthMap, correlation_px: f64) {
+    for (l, level) in levels.iter_mut().enumerate() {
+        let (w, h) = level.depth.size();
+        let step = 1usize << l;
+        level.sigma = Some(DepthMap::from_fn(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
+        level.sigma_correlation_px = correlation_px / step as f64;
+    }
+}
+
 /// The reference pyramid: the model prediction where it has a surface, the previous live
-/// frame (same camera pose) elsewhere — ElasticFusion's "fill-in".
+/// frame (same camera pose) elsewhere — ElasticFusion's "fill-in". Its σ per pixel is the
+/// prediction's (`ModelView::sigma_m`) or the previous frame's, where they carry one.
 pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &PinholeCamera, levels: usize, prep: &DepthPrep) -> Option<Vec<Level>> {
     let (w, h) = (cam.width, cam.height);
     let model_gray = model.map(|m| gray_from_rgb(&m.colour));
-    // Per pixel: (depth, intensity, normal) from the model, else from the previous frame.
-    let pick = |x: usize, y: usize| -> (f32, f32, [f32; 3]) {
+    // Per pixel: (depth, intensity, normal, σ) from the model, else from the previous frame.
+    let pick = |x: usize, y: usize| -> (f32, f32, [f32; 3], f32) {
         if let (Some(m), Some(g)) = (model, &model_gray) {
             let (d, n) = (m.depth_m.at(x, y), m.normals_cam.pixel(x, y));
             if d > 0.0 && n != [0.0; 3] {
-                return (d, g.at(x, y) / 255.0, n);
+                return (d, g.at(x, y) / 255.0, n, m.sigma_m.at(x, y));
             }
         }
         if let Some(p) = previous {
             let (d, n) = (p.depth.at(x, y), p.normals.pixel(x, y));
             if d > 0.0 && n != [0.0; 3] {
-                return (d, p.gray.at(x, y), n);
+                return (d, p.gray.at(x, y), n, p.sigma.as_ref().map_or(0.0, |s| s.at(x, y)));
             }
         }
-        (0.0, 0.0, [0.0; 3])
+        (0.0, 0.0, [0.0; 3], 0.0)
     };
-    let picked = capsule_slam_framework::Image::<f32, 5>::from_fn_par(w, h, |x, y| {
-        let (d, g, n) = pick(x, y);
-        [d, g, n[0], n[1], n[2]]
+    let picked = capsule_slam_framework::Image::<f32, 6>::from_fn_par(w, h, |x, y| {
+        let (d, g, n, s) = pick(x, y);
+        [d, g, n[0], n[1], n[2], s]
     });
     let depth = DepthMap::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[0]]);
     let gray = GrayF32::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[1]]);
@@ -140,5 +147,10 @@ pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &Pinh
     if depth.data().iter().all(|d| *d <= 0.0) {
         return None;
     }
-    Some(pyramid(depth, gray, (None, Some(normals)), cam, levels, prep))
+    let sigma = DepthMap::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[5]]);
+    let mut out = pyramid(depth, gray, (None, Some(normals)), cam, levels, prep);
+    if sigma.data().iter().any(|s| *s > 0.0) {
+        set_sigma(&mut out, &sigma, 0.0);
+    }
+    Some(out)
 }

@@ -201,11 +201,13 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     // Nearest pixel; truncation after +0.5 rounds non-negative values without libm.
     let inside = uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh;
     let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
-    // The residual's σ: the registration floor and the live depth's own σ; its weight counts a
-    // correlated block of residuals as one (`correlated`).
+    // The residual's σ: the registration floor, the live depth's own σ and the reference's (the
+    // model's, fused per surfel); its weight counts a correlated block of live residuals as one
+    // (`correlated`).
     let sigma_live = live.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(x, y)));
-    let sigma = residual_sigma(w.sigma_icp_m, sigma_live);
-    let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated).sqrt();
+    let sigma_ref = if inside { reference.sigma.as_ref().map_or(0.0, |m| f64::from(m.at(ui, vi))) } else { 0.0 };
+    let sigma = residual_sigma(w.sigma_icp_m, sigma_live, sigma_ref);
+    let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated + sigma_ref * sigma_ref).sqrt();
     let live_normal = normal(&live.normals, x, y);
     if let Some(nl) = live_normal {
         sys.live_n += 1;

@@ -25,10 +25,11 @@ pub fn rgb_jacobian(s: &Vector3<f64>, grad: (f64, f64), fx: f64, fy: f64) -> Vec
     Vector6::new(a.x, a.y, a.z, c.x, c.y, c.z)
 }
 
-/// σ of a point-to-plane residual, metres: the registration floor and the live depth's own σ
-/// (issue 17), `√(floor² + σ_live²)`; it scales the gates, the Huber threshold and the loss test.
-pub fn residual_sigma(floor_m: f64, sigma_live_m: f64) -> f64 {
-    (floor_m * floor_m + sigma_live_m * sigma_live_m).sqrt()
+/// σ of a point-to-plane residual, metres: the registration floor, the live depth's own σ and
+/// the reference's (issue 17), `√(floor² + σ_live² + σ_ref²)`; it scales the gates, the Huber
+/// threshold and the loss test.
+pub fn residual_sigma(floor_m: f64, sigma_live_m: f64, sigma_ref_m: f64) -> f64 {
+    (floor_m * floor_m + sigma_live_m * sigma_live_m + sigma_ref_m * sigma_ref_m).sqrt()
 }
 
 /// How many residuals, `spacing_px` apart, share one draw of a depth error correlated over

@@ -83,8 +83,8 @@ fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::f
 
 #[test]
 fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
-    // σ = 1 mm as the tracker's floor alone, or as a 0.1 mm floor and the frame's own σ of
-    // √(1 − 0.01) mm: the same system, residual for residual.
+    // σ = 1 mm as the tracker's floor alone, or as a 0.1 mm floor and the frame's own σ (or the
+    // model's) of √(1 − 0.01) mm: the same system, residual for residual.
     let gap = exp_se3(&Vector6::new(3e-4, -2e-4, 5e-4, 0.002, 0.0, -0.001));
     let t = |floor: f64| super::gn::Weights { w_rgb: 0.0, sigma_icp_m: floor, rgb_min_gradient: 0.002, ..photometric_weights() };
     let (live, reference) = levels(None);
@@ -97,6 +97,14 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     assert!((a.icp_rms_sigmas() / b.icp_rms_sigmas() - 1.0).abs() < 1e-4, "{} σ against {} σ", a.icp_rms_sigmas(), b.icp_rms_sigmas());
     let (ma, mb) = (a.a.full(), b.a.full());
     assert!((ma - mb).norm() < 1e-4 * ma.norm(), "the normal equations differ");
+    // The same σ as the reference's (the model's, fused per surfel): the same system again.
+    let mut reference_s = reference[1].clone();
+    let (rw, rh) = reference_s.depth.size();
+    reference_s.sigma = Some(capsule_slam_framework::DepthMap::from_fn(rw, rh, |_, _| [(1e-6f32 - 1e-8).sqrt()]));
+    let d = super::gn::accumulate(&super::gn::Inputs { live: &live[1], reference: &reference_s, photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-4));
+    assert_eq!(d.icp_n, a.icp_n);
+    assert!((a.icp_rms_sigmas() / d.icp_rms_sigmas() - 1.0).abs() < 1e-4, "{} σ against {} σ", a.icp_rms_sigmas(), d.icp_rms_sigmas());
+    assert!((ma - d.a.full()).norm() < 1e-4 * ma.norm(), "the normal equations differ with the model's σ");
     // A frame 1.2 × as noisy (its 3 σ still inside the 4 mm gate): its residuals are 1/1.2 as
     // many σ, and it weighs 1/1.2² (inside the Huber threshold) to 1/1.2 (outside) as much.
     let (live_2, _) = levels(Some(1.2e-3));

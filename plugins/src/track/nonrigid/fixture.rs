@@ -71,7 +71,7 @@ fn model_grid(amp_m: f64, half: i32, step_m: f64) -> Vec<(ModelPoint, Point3<f64
             let p = Point3::new(x, y, wall(x, y));
             let n = Vector3::new(16.0 * x + 0.1, 8.0 * y, -1.0).normalize();
             let moved = Point3::new(x, y, p.z + displacement(x, y, amp_m));
-            out.push((ModelPoint { x_world_m: p, n_world: n, gray_ref: Some(texture(x, y)) }, moved));
+            out.push((ModelPoint { x_world_m: p, n_world: n, gray_ref: Some(texture(x, y)), sigma_m: 0.0 }, moved));
         }
     }
     out

@@ -96,7 +96,7 @@ mod tests {
     use super::*;
 
     fn point(x: f64, y: f64) -> ModelPoint {
-        ModelPoint { x_world_m: Point3::new(x, y, 0.03), n_world: -Vector3::z(), gray_ref: None }
+        ModelPoint { x_world_m: Point3::new(x, y, 0.03), n_world: -Vector3::z(), gray_ref: None, sigma_m: 0.0 }
     }
 
     #[test]

@@ -22,6 +22,8 @@ pub struct ModelPoint {
     pub n_world: Vector3<f64>,
     /// Reference intensity in [0, 1], if the previous frame saw the pixel.
     pub gray_ref: Option<f64>,
+    /// σ of its predicted depth, metres (`ModelView::sigma_m`; 0 = none).
+    pub sigma_m: f64,
 }
 
 /// The prediction's valid pixels every `stride` pixels whose surface faces the camera within
@@ -49,7 +51,7 @@ pub fn sample(model: &ModelView, cam: &PinholeCamera, previous_gray: Option<&Gra
                 continue;
             }
             let gray_ref = previous_gray.map(|g| f64::from(g.at(x, y))).filter(|v| *v > 0.0);
-            out.push(ModelPoint { x_world_m: t_wc * x_cam, n_world: r_wc * n_cam, gray_ref });
+            out.push(ModelPoint { x_world_m: t_wc * x_cam, n_world: r_wc * n_cam, gray_ref, sigma_m: f64::from(model.sigma_m.at(x, y)) });
         }
     }
     out

@@ -288,11 +288,11 @@ impl<'a> Problem<'a> {
         let live = look(level, t, &warped)?;
         let mut rows: Vec<(usize, [f64; 12])> = Vec::with_capacity(binding.len());
         let mut icp_r2 = None;
-        // σ of the residual (floor and live depth) for the gate and the Huber threshold; the
-        // weight counts a correlated patch of points once (`icp-rgb`'s `gn.rs`).
-        let sigma = residual_sigma(w.sigma_icp_m, live.sigma_m);
+        // σ of the residual (floor, live depth and model) for the gate and the Huber threshold;
+        // the weight counts a correlated patch of live points once (`icp-rgb`'s `gn.rs`).
+        let sigma = residual_sigma(w.sigma_icp_m, live.sigma_m, p.sigma_m);
         let correlated = correlated_count(level.sigma_correlation_px, w.point_stride_px);
-        let sigma_w2 = w.sigma_icp_m * w.sigma_icp_m + live.sigma_m * live.sigma_m * correlated;
+        let sigma_w2 = w.sigma_icp_m * w.sigma_icp_m + live.sigma_m * live.sigma_m * correlated + p.sigma_m * p.sigma_m;
         let close = (warped - live.p_world_m).norm() <= w.gate_m.max(w.gate_sigmas * sigma) && p.n_world.dot(&live.n_world) >= w.cos_gate;
         if close {
             let r = data_residual(&p.n_world, &warped, &live.p_world_m);

@@ -215,7 +215,7 @@ fn bad_input_falls_back_without_a_panic() {
         Ok(Fit::Fallback(_) | Fit::Still) | Err(_) => {}
     }
     // Model points with NaN positions bind no node.
-    let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None }; 10];
+    let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None, sigma_m: 0.0 }; 10];
     assert!(matches!(t.fit(&bad, &live, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
 }
 
