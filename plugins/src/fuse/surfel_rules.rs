@@ -153,16 +153,6 @@ mod tests {
 
     #[test]
     fn merging_averages_by_confidence() {
-        let mut s = Measurement {
-            position_m: Point3::new(0.0, 0.0, 0.03),
-            normal: -Vector3::z(),
-            colour: [100, 0, 0],
-            confidence: 3.0,
-            radius_m: 1e-4,
-            albedo: 0.0,
-            sigma_m: 0.0,
-        }
-        .to_surfel(0);
         let m = Measurement {
             position_m: Point3::new(0.0, 0.0, 0.034),
             normal: -Vector3::z(),
@@ -172,6 +162,7 @@ mod tests {
             albedo: 0.5,
             sigma_m: 0.0,
         };
+        let mut s = Measurement { position_m: Point3::new(0.0, 0.0, 0.03), colour: [100, 0, 0], confidence: 3.0, albedo: 0.0, ..m }.to_surfel(0);
         merge(&mut s, &m, 7, 1.5);
         assert!((s.position_m.z - 0.031).abs() < 1e-7);
         assert_eq!(s.colour[0], 125);
