@@ -6,6 +6,8 @@ use capsule_slam_benches::{fused_map_of, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::{Context, ModelSet};
 use capsule_slam_phantom::SizePreset;
+use capsule_slam_plugins::fuse::surfel_cpu::{SplatDepths, predict};
+use capsule_slam_plugins::fuse::surfel_params::SurfelParams;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 
 fn fuse(c: &mut Criterion) {
@@ -38,6 +40,18 @@ fn fuse_with(c: &mut Criterion, name: &str, gpu: &capsule_slam_gpu::GpuHandle) {
         g.bench_with_input(BenchmarkId::new("predict", label), &pose, |b, pose| {
             b.iter(|| fuser.predict(pose, ModelSet::Active, &mut Context::new(100, &rig, None, &mut StageReport::default())).unwrap_or_else(|e| panic!("{e}")))
         });
+        if name == "surfel-cpu" {
+            // The splat on the same surfels with ElasticFusion's nearest-wins rule (ε = 0) and
+            // the default ε-z-buffer (1 mm): the same passes, other winners.
+            let surfels = fuser.snapshot().unwrap_or_else(|e| panic!("{e}")).surfels;
+            let params = SurfelParams::default();
+            for (variant, blend_m) in [("predict-eps-0", 0.0), ("predict-blend-1mm", 0.001)] {
+                let depths = SplatDepths { blend_m, ..SplatDepths::of(&params) };
+                g.bench_with_input(BenchmarkId::new(variant, label), &pose, |b, pose| {
+                    b.iter(|| predict(&surfels, |s| s.confidence >= params.stable_confidence, &p.camera, pose, &depths))
+                });
+            }
+        }
     }
     g.finish();
 }

@@ -158,49 +158,27 @@ impl Disc {
 /// splatting", §5; Pfister et al. 2000): the discs whose ray intersection lies within
 /// `depths.blend_m` of the nearest are taken as one surface, and the most confident of them
 /// wins (ties: the lowest index); the pixel gets its intersection depth, normal and colour.
-/// ElasticFusion's nearest-wins z-test (its `combo_splat.frag`) is `blend_m = 0`: with noisy
-/// depth it shows the surfels that noise put in front of the wall, a bias toward the camera
-/// of about one noise σ that the tracker then follows (`docs/results/depth-noise.md`).
+/// ElasticFusion's nearest-wins z-test (its `combo_splat.frag`) is `blend_m = 0` (ties: the
+/// most confident): with noisy depth it shows the surfels that noise put in front of the wall,
+/// a bias toward the camera of about one noise σ that the tracker then follows
+/// (`docs/results/depth-noise.md`).
 ///
-/// Three parallel passes with atomics (nearest depth; most confident within ε; the winner's
+/// Parallel passes with atomics (nearest depth; most confident within ε; the winner's
 /// intersection), so the result does not depend on the thread schedule.
 pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam: &PinholeCamera, t_world_cam: &Iso3, depths: &SplatDepths) -> ModelView {
     let (w, h) = (cam.width, cam.height);
     let t_cam_world = t_world_cam.inverse().cast::<f32>();
     let disc = |s: &Surfel| if include(s) { Disc::new(s, &t_cam_world, cam, depths) } else { None };
-    // 1: the nearest intersection per pixel (positive f32 bits order as the values).
-    let front: Vec<AtomicU32> = (0..w * h).map(|_| AtomicU32::new(u32::MAX)).collect();
-    surfels.par_iter().filter_map(disc).for_each(|d| {
-        d.for_each_hit(cam, depths, |k, t| {
-            // Read first: most candidates lose, and a load is far cheaper than an atomic
-            // read-modify-write.
-            if t.to_bits() < front[k].load(Ordering::Relaxed) {
-                front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
-            }
-        })
-    });
-    // 2: the most confident disc within ε of it: (confidence key << 32 | !index), maximum.
-    let best: Vec<AtomicU64> = (0..w * h).map(|_| AtomicU64::new(0)).collect();
-    surfels.par_iter().enumerate().for_each(|(i, s)| {
-        let Some(d) = disc(s) else { return };
-        let key = (u64::from(conf_key(s.confidence)) << 32) | u64::from(!(i as u32));
-        d.for_each_hit(cam, depths, |k, t| {
-            if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
-                best[k].fetch_max(key, Ordering::Relaxed);
-            }
-        })
-    });
-    // 3: the winner's own intersection, normal and colour.
+    let winners = most_confident(surfels, &disc, cam, depths);
+    // The winner's own intersection, normal and colour.
     let mut view = ModelView::empty(w, h, *t_world_cam);
-    for (k, b) in best.iter().enumerate() {
-        let key = b.load(Ordering::Relaxed);
-        if key == 0 {
+    for (k, &v) in winners.iter().enumerate() {
+        if v == EMPTY {
             continue;
         }
-        let i = !(key as u32) as usize;
+        let (depth, i) = unpack(v);
         let s = &surfels[i];
         let (x, y) = (k % w, k / w);
-        let Some(depth) = disc(s).and_then(|d| d.hit(x as i64, y as i64, cam, depths)) else { continue };
         let n = t_cam_world.rotation * s.normal;
         *view.depth_m.at_mut(x, y) = depth;
         view.normals_cam.set_pixel(x, y, [n.x, n.y, n.z]);
@@ -212,6 +190,44 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
         *view.sigma_m.at_mut(x, y) = predicted_sigma(s.sigma_m, s.confidence);
     }
     view
+}
+
+/// A surfel's disc in the camera, if the prediction includes it and it is in range.
+type Discs<'a> = dyn Fn(&Surfel) -> Option<Disc> + Sync + 'a;
+
+/// The ε-z-buffer: the nearest intersection per pixel, then the most confident disc within ε
+/// of it, an atomic maximum of (confidence key << 32 | !index); then, per pixel in parallel,
+/// the winner's own intersection. Returns (depth bits << 32 | index) per pixel (`EMPTY`: none).
+fn most_confident(surfels: &[Surfel], disc: &Discs<'_>, cam: &PinholeCamera, depths: &SplatDepths) -> Vec<u64> {
+    let n = cam.width * cam.height;
+    let front: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(u32::MAX)).collect();
+    surfels.par_iter().filter_map(disc).for_each(|d| {
+        d.for_each_hit(cam, depths, |k, t| {
+            if t.to_bits() < front[k].load(Ordering::Relaxed) {
+                front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
+            }
+        })
+    });
+    let best: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
+    surfels.par_iter().enumerate().for_each(|(i, s)| {
+        let Some(d) = disc(s) else { return };
+        let key = (u64::from(conf_key(s.confidence)) << 32) | u64::from(!(i as u32));
+        d.for_each_hit(cam, depths, |k, t| {
+            if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
+                best[k].fetch_max(key, Ordering::Relaxed);
+            }
+        })
+    });
+    let w = cam.width;
+    best.into_par_iter()
+        .enumerate()
+        .map(|(k, b)| {
+            let key = b.into_inner();
+            let i = !(key as u32) as usize;
+            let hit = if key == 0 { None } else { disc(&surfels[i]).and_then(|d| d.hit((k % w) as i64, (k / w) as i64, cam, depths)) };
+            hit.map_or(EMPTY, |t| pack(t, i))
+        })
+        .collect()
 }
 
 /// σ of a predicted depth: a surfel's σ over √confidence, the σ of the mean of that many

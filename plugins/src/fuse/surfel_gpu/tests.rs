@@ -83,9 +83,13 @@ fn view_agreement(a: &ModelView, b: &ModelView) -> (f64, usize) {
 }
 
 fn builders(ph: &Phantom, cap: Option<u32>, gpu: &GpuHandle) -> (SurfelGpu, SurfelCpu) {
+    builders_with(ph, cap, gpu, params())
+}
+
+fn builders_with(ph: &Phantom, cap: Option<u32>, gpu: &GpuHandle, p: SurfelParams) -> (SurfelGpu, SurfelCpu) {
     let env = BuildEnv::new(rig(ph), None).with_gpu(gpu.clone());
-    let g = SurfelGpu::with_capacity(params(), &env, cap).unwrap();
-    (g, SurfelCpu::build(params(), &env).unwrap())
+    let g = SurfelGpu::with_capacity(p.clone(), &env, cap).unwrap();
+    (g, SurfelCpu::build(p, &env).unwrap())
 }
 
 #[test]
@@ -116,6 +120,24 @@ fn the_gpu_map_and_its_predictions_equal_the_cpu_ones() {
         // Measured: 100 % (active and inactive).
         assert!(share > 0.998, "{set:?}: only {:.2} % of the pixels agree", 100.0 * share);
     }
+}
+
+#[test]
+fn elasticfusions_nearest_wins_splat_is_the_same_on_both() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("elasticfusions_nearest_wins_splat_is_the_same_on_both").is_none() {
+        return;
+    }
+    let ph = phantom(2, 12, 0.0005);
+    let (mut g, mut c) = builders_with(&ph, None, &gpu, SurfelParams { splat_blend_depth_m: 0.0, ..params() });
+    fuse_both(&ph, &mut g, &mut c, 12, false);
+    let rig = rig(&ph);
+    let mut r = StageReport::default();
+    let pose = rgbd(&ph, 11).gt_t_world_cam.unwrap();
+    let a = g.predict(&pose, ModelSet::Active, &mut Context::new(11, &rig, None, &mut r)).unwrap();
+    let b = c.predict(&pose, ModelSet::Active, &mut Context::new(11, &rig, None, &mut r)).unwrap();
+    let (share, filled) = view_agreement(&a, &b);
+    assert!(filled > 500 && share > 0.998, "{filled} pixels, {:.2} % agree", 100.0 * share);
 }
 
 #[test]
