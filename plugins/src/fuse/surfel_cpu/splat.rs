@@ -170,7 +170,7 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
     let t_cam_world = t_world_cam.inverse().cast::<f32>();
     let disc = |s: &Surfel| if include(s) { Disc::new(s, &t_cam_world, cam, depths) } else { None };
     let winners = most_confident(surfels, &disc, cam, depths);
-    // The winner's own intersection, normal and colour.
+    // The winner's normal and colour beside its intersection depth.
     let mut view = ModelView::empty(w, h, *t_world_cam);
     for (k, &v) in winners.iter().enumerate() {
         if v == EMPTY {
@@ -192,16 +192,14 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
     view
 }
 
-/// A surfel's disc in the camera, if the prediction includes it and it is in range.
-type Discs<'a> = dyn Fn(&Surfel) -> Option<Disc> + Sync + 'a;
-
 /// The ε-z-buffer: the nearest intersection per pixel, then the most confident disc within ε
 /// of it, an atomic maximum of (confidence key << 32 | !index); then, per pixel in parallel,
 /// the winner's own intersection. Returns (depth bits << 32 | index) per pixel (`EMPTY`: none).
-fn most_confident(surfels: &[Surfel], disc: &Discs<'_>, cam: &PinholeCamera, depths: &SplatDepths) -> Vec<u64> {
+/// `disc` gives a surfel's disc in the camera, if the prediction includes it and it is in range.
+fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + Sync, cam: &PinholeCamera, depths: &SplatDepths) -> Vec<u64> {
     let n = cam.width * cam.height;
     let front: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(u32::MAX)).collect();
-    surfels.par_iter().filter_map(disc).for_each(|d| {
+    surfels.par_iter().filter_map(&disc).for_each(|d| {
         d.for_each_hit(cam, depths, |k, t| {
             if t.to_bits() < front[k].load(Ordering::Relaxed) {
                 front[k].fetch_min(t.to_bits(), Ordering::Relaxed);

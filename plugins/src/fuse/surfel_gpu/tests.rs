@@ -82,6 +82,16 @@ fn view_agreement(a: &ModelView, b: &ModelView) -> (f64, usize) {
     (same as f64 / n as f64, filled)
 }
 
+/// [`view_agreement`] of both fusers' predictions of `set` from the true pose of frame
+/// `frames.0`, at frame `frames.1`.
+fn prediction_agreement(ph: &Phantom, (g, c): (&mut dyn Fuser, &mut dyn Fuser), set: ModelSet, frames: (usize, usize)) -> (f64, usize) {
+    let (rig, mut r) = (rig(ph), StageReport::default());
+    let pose = rgbd(ph, frames.0).gt_t_world_cam.unwrap();
+    let a = g.predict(&pose, set, &mut Context::new(frames.1, &rig, None, &mut r)).unwrap();
+    let b = c.predict(&pose, set, &mut Context::new(frames.1, &rig, None, &mut r)).unwrap();
+    view_agreement(&a, &b)
+}
+
 fn builders(ph: &Phantom, cap: Option<u32>, gpu: &GpuHandle) -> (SurfelGpu, SurfelCpu) {
     builders_with(ph, cap, gpu, params())
 }
@@ -109,13 +119,8 @@ fn the_gpu_map_and_its_predictions_equal_the_cpu_ones() {
     assert_eq!(g.stats(), c.stats(), "counts");
     assert!(c.stats().total > c.stats().active && c.stats().active > 0, "both sets are exercised: {:?}", c.stats());
     assert!(sc.iter().all(|s| s.sigma_m > 2e-4), "every surfel carries its depth σ");
-    let rig = rig(&ph);
-    let mut r = StageReport::default();
     for (set, pose_frame) in [(ModelSet::Active, 23), (ModelSet::Inactive, 3)] {
-        let pose = rgbd(&ph, pose_frame).gt_t_world_cam.unwrap();
-        let a = g.predict(&pose, set, &mut Context::new(23, &rig, None, &mut r)).unwrap();
-        let b = c.predict(&pose, set, &mut Context::new(23, &rig, None, &mut r)).unwrap();
-        let (share, filled) = view_agreement(&a, &b);
+        let (share, filled) = prediction_agreement(&ph, (&mut g, &mut c), set, (pose_frame, 23));
         assert!(filled > 500, "{set:?}: the CPU prediction has only {filled} pixels");
         // Measured: 100 % (active and inactive).
         assert!(share > 0.998, "{set:?}: only {:.2} % of the pixels agree", 100.0 * share);
@@ -131,12 +136,7 @@ fn elasticfusions_nearest_wins_splat_is_the_same_on_both() {
     let ph = phantom(2, 12, 0.0005);
     let (mut g, mut c) = builders_with(&ph, None, &gpu, SurfelParams { splat_blend_depth_m: 0.0, ..params() });
     fuse_both(&ph, &mut g, &mut c, 12, false);
-    let rig = rig(&ph);
-    let mut r = StageReport::default();
-    let pose = rgbd(&ph, 11).gt_t_world_cam.unwrap();
-    let a = g.predict(&pose, ModelSet::Active, &mut Context::new(11, &rig, None, &mut r)).unwrap();
-    let b = c.predict(&pose, ModelSet::Active, &mut Context::new(11, &rig, None, &mut r)).unwrap();
-    let (share, filled) = view_agreement(&a, &b);
+    let (share, filled) = prediction_agreement(&ph, (&mut g, &mut c), ModelSet::Active, (11, 11));
     assert!(filled > 500 && share > 0.998, "{filled} pixels, {:.2} % agree", 100.0 * share);
 }
 
