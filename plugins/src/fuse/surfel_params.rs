@@ -40,7 +40,7 @@ capsule_slam_framework::plugin_params! {
         pub bilateral_sigma_m: f32 = 0.0008; unit = "m"; range = 1.0e-6..=10.0;
         /// The ε of the splatted prediction's ε-z-buffer (Zwicker et al. 2001): discs within
         /// this of the nearest at a pixel are one surface and the most confident of them is
-        /// shown. 0 is ElasticFusion's nearest-wins z-test, which shows the surfels noise put in
+        /// shown (confidence counted up to `stable_confidence`). 0 is ElasticFusion's nearest-wins z-test, which shows the surfels noise put in
         /// front of the wall (issue 17: 0.37 mm of bias under structured-light noise). About
         /// 2–3 σ of the depth noise at working distance; room scale: 0.01–0.03 m.
         pub splat_blend_depth_m: f32 = 0.001; unit = "m"; range = 0.0..=1.0;

@@ -70,8 +70,8 @@ fn moved(surfels: &[Surfel], motion: &Iso3) -> Vec<Surfel> {
 
 fn close(sc: &Scene, new: &[Surfel], params: DeformationParams) -> (Option<LoopClosure>, StageReport) {
     let cam = &sc.phantom.camera;
-    let active = predict(new, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
-    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    let active = predict(new, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
+    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
     let map = Fixed(SurfelSet::new([sc.old.clone(), new.to_vec()].concat()));
     let rig = Rig::Mono(cam.clone());
     let base = sc.phantom.render(150).to_rgbd(cam);
@@ -216,8 +216,8 @@ fn a_loop_is_confirmed_by_consecutive_agreeing_registrations() {
     let cam = &sc.phantom.camera;
     let rig = Rig::Mono(cam.clone());
     let map = Fixed(SurfelSet::new([sc.old.clone(), new.clone()].concat()));
-    let active = predict(&new, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
-    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    let active = predict(&new, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
+    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
     let base = sc.phantom.render(150).to_rgbd(cam);
     let mut closer = DeformationCloser::new(DeformationParams { consistent_frames: 2, ..DeformationParams::default() });
     let mut at = |index: usize, active: &ModelView| {

@@ -159,7 +159,7 @@ fn a_map_with_the_true_albedo_removes_the_texture_error() {
         |_| true,
         &ph.camera,
         &pose,
-        &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 },
+        &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 },
     );
     let run = |source: AlbedoSource, img: &Rgb8| {
         let mut est = NearLightSfs::with_light(NearLightSfsParams { albedo_source: source, ..NearLightSfsParams::default() }, ph.light.clone());

@@ -81,13 +81,21 @@ pub struct SplatDepths {
     pub max_m: f32,
     /// The ε of the ε-z-buffer: discs within this of the nearest at a pixel are one surface.
     pub blend_m: f32,
+    /// The confidence from which a surfel counts as stable (`stable_confidence`).
+    pub stable: f32,
 }
 
 impl SplatDepths {
     /// The limits a map's parameters give.
     pub fn of(params: &SurfelParams) -> Self {
-        Self { min_m: params.min_depth_m, max_m: params.max_depth_m, blend_m: params.splat_blend_depth_m }
+        Self { min_m: params.min_depth_m, max_m: params.max_depth_m, blend_m: params.splat_blend_depth_m, stable: params.stable_confidence }
     }
+}
+
+/// The confidence the ε-z-buffer compares: capped at `depths.stable`, except at ε = 0, which
+/// stays ElasticFusion's z-test exactly (ties: the most confident); `fuse.wgsl` the same.
+fn capped(confidence: f32, depths: &SplatDepths) -> f32 {
+    if depths.blend_m > 0.0 { confidence.min(depths.stable) } else { confidence }
 }
 
 /// A confidence as a key whose unsigned order is the float order (negative values flipped),
@@ -157,7 +165,11 @@ impl Disc {
 /// Each pixel shows one disc, chosen by an ε-z-buffer (Zwicker et al. 2001, "Surface
 /// splatting", §5; Pfister et al. 2000): the discs whose ray intersection lies within
 /// `depths.blend_m` of the nearest are taken as one surface, and the most confident of them
-/// wins (ties: the lowest index); the pixel gets its intersection depth, normal and colour.
+/// wins, its confidence counted up to `depths.stable` (ElasticFusion's c_stable; ties: the
+/// lowest index, the surfel created first); the pixel gets its intersection depth, normal and
+/// colour. The cap matters on a moving wall: a surfel fused for hundreds of frames where the
+/// wall was is not more the wall than a stable one where it is (uncapped, a rigid tracker lost
+/// 66 of 300 frames on a deforming phantom, `docs/results/depth-noise.md`).
 /// ElasticFusion's nearest-wins z-test (its `combo_splat.frag`) is `blend_m = 0` (ties: the
 /// most confident): with noisy depth it shows the surfels that noise put in front of the wall,
 /// a bias toward the camera of about one noise σ that the tracker then follows
@@ -193,7 +205,7 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
 }
 
 /// The ε-z-buffer: the nearest intersection per pixel, then the most confident disc within ε
-/// of it, an atomic maximum of (confidence key << 32 | !index); then, per pixel in parallel,
+/// of it, an atomic maximum of (capped confidence key << 32 | !index); then, per pixel in parallel,
 /// the winner's own intersection. Returns (depth bits << 32 | index) per pixel (`EMPTY`: none).
 /// `disc` gives a surfel's disc in the camera, if the prediction includes it and it is in range.
 fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + Sync, cam: &PinholeCamera, depths: &SplatDepths) -> Vec<u64> {
@@ -209,7 +221,7 @@ fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + S
     let best: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
     surfels.par_iter().enumerate().for_each(|(i, s)| {
         let Some(d) = disc(s) else { return };
-        let key = (u64::from(conf_key(s.confidence)) << 32) | u64::from(!(i as u32));
+        let key = (u64::from(conf_key(capped(s.confidence, depths))) << 32) | u64::from(!(i as u32));
         d.for_each_hit(cam, depths, |k, t| {
             if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
                 best[k].fetch_max(key, Ordering::Relaxed);

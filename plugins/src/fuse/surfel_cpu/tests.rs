@@ -168,19 +168,30 @@ fn the_splat_shows_the_most_confident_disc_within_blend_depth_of_the_nearest() {
         let k = 32 * 64 + 32;
         (v.depth_m.data()[k], v.colour.pixel(32, 32)[0], v.confidence.data()[k])
     };
-    let (z, colour, conf) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    let (z, colour, conf) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 1000.0 });
     assert_eq!((colour, conf), (20, 30.0), "the most confident disc within 1 mm is shown");
     assert!((z - 0.0506).abs() < 1e-6, "at its own depth, not the nearest's: {z}");
-    let v = predict(&discs, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    let v = predict(&discs, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 1000.0 });
     let sigma = v.sigma_m.at(32, 32);
     assert!((sigma - 6e-4 / 30f32.sqrt()).abs() < 1e-9, "the σ of a mean of 30 measurements: {sigma}");
-    let (z, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.0 });
+    let (z, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.0, stable: 1000.0 });
     assert_eq!(colour, 10, "ε = 0 is ElasticFusion's nearest-wins z-test");
     assert!((z - 0.05).abs() < 1e-6, "{z}");
-    let (_, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.01 });
+    let (_, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.01, stable: 1000.0 });
     assert_eq!(colour, 30, "a wider ε reaches the third disc");
+    // Confidence counts up to `stable` (ElasticFusion's c_stable): two stable discs tie, and
+    // the one created first wins, however much longer the other was fused; the weak disc
+    // in front still loses.
+    let (_, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.01, stable: 10.0 });
+    assert_eq!(colour, 20, "the confidence is capped at stable_confidence");
+    let (_, colour, _) = centre(&SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.01, stable: 40.0 });
+    assert_eq!(colour, 30, "below the cap the more confident disc wins");
+    // At ε = 0 the z-test is ElasticFusion's: equal depths go to the most confident, uncapped.
+    let tie = [disc_at(0.05, 20.0, 1), disc_at(0.05, 50.0, 2)];
+    let v = predict(&tie, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.0, stable: 10.0 });
+    assert_eq!(v.colour.pixel(32, 32)[0], 2);
     // Equal confidence: the lowest index wins, whatever the depth order.
     let tie = [disc_at(0.0506, 5.0, 1), disc_at(0.0500, 5.0, 2)];
-    let v = predict(&tie, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001 });
+    let v = predict(&tie, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 1000.0 });
     assert_eq!(v.colour.pixel(32, 32)[0], 1);
 }

@@ -3,8 +3,9 @@
 // same order). The index map's z-test is resolved in two passes (atomic minimum of the depth
 // bits, then of the index among the surfels at that depth), which equals the CPU's atomic
 // minimum of (depth bits << 32 | index); the prediction's ε-z-buffer in three (nearest depth,
-// most confident within ε, lowest index), which equals the CPU's atomic maximum of
-// (confidence key << 32 | !index): the map and its predictions are deterministic.
+// most confident within ε with the confidence capped at P.stable, lowest index), which equals
+// the CPU's atomic maximum of (capped confidence key << 32 | !index): the map and its
+// predictions are deterministic.
 
 struct Surfel {
     pos: vec3<f32>,
@@ -374,13 +375,14 @@ fn hit(d: Disc, x: i32, y: i32) -> f32 {
     return t;
 }
 
-// step 0: nearest depth; 1: most confident within P.blend of it; 2: the lowest index of those.
+// step 0: nearest depth; 1: most confident within P.blend of it, the confidence capped at
+// P.stable when P.blend > 0 (surfel_cpu::splat::capped); 2: the lowest index of those.
 fn splat(i: u32, step: u32) {
     let s = surf_a[i];
     if (!splat_include(s)) { return; }
     let d = disc(s);
     if (!d.ok) { return; }
-    let key = conf_key(s.conf);
+    let key = conf_key(select(s.conf, min(s.conf, P.stable), P.blend > 0.0));
     for (var y = d.lo.y; y <= d.hi.y; y = y + 1) {
         for (var x = d.lo.x; x <= d.hi.x; x = x + 1) {
             let t = hit(d, x, y);
