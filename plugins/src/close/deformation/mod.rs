@@ -13,7 +13,9 @@
 //!    active surface and the camera onto the inactive one; `recent` moves the inactive surface
 //!    onto the current view, the camera stays), each point at the creation time of the surfel it
 //!    samples; the graph is sampled from the map (every n-th surfel in time order, at most
-//!    `max_nodes`), optimised ([`graph`]) and returned with the corrected pose. The pipeline
+//!    `max_nodes`), optimised ([`graph`]) and returned with the corrected pose, unless the
+//!    optimisation could not lower the graph's energy (the map would stay and the camera move
+//!    alone: rejected, counter `rejected_graph`). The pipeline
 //!    deforms the map (positions and normals) and the trajectory; the fuser reactivates the
 //!    inactive surfels seen from the corrected pose.
 //!
@@ -91,6 +93,17 @@ impl LoopCloser for DeformationCloser {
         }
         let solution = graph.optimise(&self.weights())?;
         ctx.count("ms_graph", clock.elapsed().as_secs_f64() * 1e3);
+        // A graph that cannot lower its energy (or gives no number) leaves the map where it is: applying the
+        // closure would move the camera alone, off the map it is looking at.
+        if solution.energy_after.partial_cmp(&solution.energy_before) != Some(std::cmp::Ordering::Less) {
+            ctx.warn(format!(
+                "a loop was found but the deformation graph could not bend the map toward it (energy {:.4} before, {:.4} after): not closed",
+                solution.energy_before, solution.energy_after
+            ));
+            ctx.count("rejected", 1.0);
+            ctx.count("rejected_graph", 1.0);
+            return Ok(None);
+        }
         let clock = std::time::Instant::now();
         let (moved, held) = fit_in_view(&graph.deformation, &snap, input, &c, cam);
         ctx.count("ms_fit_in_view", clock.elapsed().as_secs_f64() * 1e3);

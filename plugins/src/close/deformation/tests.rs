@@ -158,6 +158,18 @@ fn a_drifted_revisit_is_closed_and_bends_the_new_surface_onto_the_old() {
 }
 
 #[test]
+fn a_loop_the_graph_cannot_realise_is_not_closed() {
+    // The same drifted revisit, but the surface constraints weigh nothing (w_con = 0): the
+    // graph has nothing to lower, so closing would move the camera and not the map.
+    let sc = scene();
+    let new = moved(&sc.old, &drift(&sc));
+    let (closure, report) = close(&sc, &new, DeformationParams { w_con: 0.0, ..DeformationParams::default() });
+    assert!(closure.is_none(), "a closure the graph did not realise was accepted: {report:?}");
+    assert_eq!(report.counters.get("rejected_graph"), Some(&1.0), "{report:?}");
+    assert!(report.warnings.iter().any(|w| w.contains("could not bend the map")), "{:?}", report.warnings);
+}
+
+#[test]
 fn with_the_recent_model_as_reference_the_old_surface_moves_and_the_camera_stays() {
     let sc = scene();
     let new = moved(&sc.old, &drift(&sc));
