@@ -72,7 +72,8 @@ impl IndexMap {
     }
 }
 
-/// The depth limits of a splatted prediction, in metres along the camera's z axis.
+/// How a prediction is splatted: its depth limits and ε in metres along the camera's z axis,
+/// and the confidence at which the ε-z-buffer stops preferring one disc over another.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SplatDepths {
     /// Intersections at or nearer than this are ignored.
