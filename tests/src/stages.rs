@@ -201,6 +201,42 @@ impl Tracker for WarpTracker {
     }
 }
 
+capsule_slam_framework::plugin_params! {
+    /// Parameters of the test bad-pose tracker.
+    pub struct BadPoseParams {
+        /// Factor on the ground-truth rotation quaternion (1: a true rotation).
+        pub quaternion_scale: f64 = 1.0; unit = "-"; range = 0.0..=10.0;
+        /// The frame whose pose is NaN.
+        pub nan_at_frame: u32 = 1000000; unit = "frame"; range = 0.0..=1.0e9;
+    }
+}
+
+/// Tracks by the ground-truth pose but returns it with a rotation quaternion scaled off unit
+/// norm, and a NaN pose at one frame: what a buggy plugin may hand the pipeline.
+pub struct BadPoseTracker {
+    params: BadPoseParams,
+}
+
+impl Plugin for BadPoseTracker {
+    const NAME: &'static str = "test-bad-pose";
+    const SUMMARY: &'static str = "test only: ground-truth pose with a non-unit quaternion, and a NaN pose at one frame";
+    type Params = BadPoseParams;
+    fn build(params: BadPoseParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        Ok(Self { params })
+    }
+}
+
+impl Tracker for BadPoseTracker {
+    fn track(&mut self, frame: &RgbdFrame, _model: Option<&ModelView>, _t_world_prev: &Iso3, _ctx: &mut Context) -> Result<TrackResult, StageError> {
+        let pose = frame.gt_t_world_cam.ok_or_else(|| StageError::invalid_input("test-bad-pose needs ground truth"))?;
+        if frame.index as u32 == self.params.nan_at_frame {
+            return Ok(TrackResult::tracked(Iso3::translation(f64::NAN, 0.0, 0.0)));
+        }
+        let q = nalgebra::Unit::new_unchecked(pose.rotation.into_inner() * self.params.quaternion_scale);
+        Ok(TrackResult::tracked(Iso3::from_parts(pose.translation, q)))
+    }
+}
+
 /// A stereo-only depth estimator, to test rig validation.
 pub struct StereoOnly;
 
@@ -236,5 +272,6 @@ pub fn test_registry() -> capsule_slam_framework::Registry {
     r.register(PluginEntry::loop_closer::<ShiftCloser>()).expect("register test-shift");
     r.register(PluginEntry::depth_estimator::<StereoOnly>()).expect("register test-stereo");
     r.register(PluginEntry::tracker::<WarpTracker>()).expect("register test-warp");
+    r.register(PluginEntry::tracker::<BadPoseTracker>()).expect("register test-bad-pose");
     r
 }

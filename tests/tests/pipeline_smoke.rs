@@ -193,3 +193,30 @@ fn a_trackers_warp_moves_the_map_before_fusion_and_a_fuser_without_warp_says_so(
     let err = run_on(&data, &tmp.path().join("points"), &cfg).unwrap_err().to_string();
     assert!(err.contains("test-points") && err.contains("cannot deform"), "{err}");
 }
+
+#[test]
+fn a_trackers_pose_off_unit_rotation_is_renormalised_and_a_nan_pose_is_a_lost_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let gt = fixtures::write_dataset(&data, 8);
+    let cfg = config(&["pipeline.tracker=test-bad-pose", "plugins.test-bad-pose.quaternion_scale=1.01", "plugins.test-bad-pose.nan_at_frame=4"]);
+    let registry = test_registry();
+    let ds = Dataset::open(&data, &cfg.input, None).unwrap();
+    let mut p = Pipeline::build(&cfg, "test", &registry, &BuildEnv::new(ds.rig(), Some(data.clone()))).unwrap();
+    let mut w = RunWriter::create(&tmp.path().join("out"), &p.resolved_config().to_toml_string()).unwrap();
+    let mut warnings: Vec<(usize, String)> = Vec::new();
+    let summary = run(&ds, &mut p, &mut w, &RunOptions::default(), |r| warnings.extend(r.warnings().map(|m| (r.index, m)))).unwrap();
+    // The NaN pose is a lost frame at the previous pose, and says so.
+    assert_eq!(summary.frames_lost, 1);
+    assert!(warnings.iter().any(|(i, m)| *i == 4 && m.contains("not finite")), "{warnings:?}");
+    // Every other pose is the ground truth with its rotation back at unit norm (a 1 % scaled
+    // quaternion would scale the map by 2 %), each renormalisation named.
+    let traj = p.trajectory();
+    for (i, (e, g)) in traj.iter().zip(&gt).enumerate() {
+        assert!((e.t_world_cam.rotation.quaternion().norm() - 1.0).abs() < 1e-12, "frame {i}: norm {}", e.t_world_cam.rotation.quaternion().norm());
+        let truth = if i == 4 { &gt[3] } else { g };
+        assert!((e.t_world_cam.rotation.coords - truth.t_world_cam.rotation.coords).norm() < 1e-8, "frame {i}");
+        assert!((e.t_world_cam.translation.vector - truth.t_world_cam.translation.vector).norm() < 1e-8, "frame {i}");
+    }
+    assert_eq!(warnings.iter().filter(|(_, m)| m.contains("renormalised")).count(), 7, "{warnings:?}");
+}

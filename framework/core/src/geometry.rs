@@ -40,6 +40,23 @@ pub fn exp_se3(xi: &Vector6<f64>) -> Iso3 {
     Isometry3::from_parts(Translation3::from(v * rho), UnitQuaternion::from_scaled_axis(omega))
 }
 
+/// A pose left unchanged except that its rotation quaternion is scaled back to unit norm.
+///
+/// nalgebra multiplies unit quaternions without renormalising, and inverts one by conjugating,
+/// which keeps its norm instead of inverting it: a pose composed every frame from its own
+/// predecessor (`t_world_prev * motion`, a motion `t_prev⁻¹ · t`) lets the norm's rounding error
+/// compound, and a rotation of norm ≠ 1 scales what it moves. Every tracker's increment and the
+/// pipeline's stored pose pass through here.
+pub fn renormalised(mut t: Iso3) -> Iso3 {
+    t.rotation.renormalize();
+    t
+}
+
+/// How far a pose's rotation quaternion is from unit norm (0 for a true rotation).
+pub fn quaternion_norm_error(t: &Iso3) -> f64 {
+    (t.rotation.quaternion().norm() - 1.0).abs()
+}
+
 /// The SE(3) logarithm, inverse of [`exp_se3`] for rotation angles below π.
 pub fn log_se3(t: &Iso3) -> Vector6<f64> {
     let omega = t.rotation.scaled_axis();

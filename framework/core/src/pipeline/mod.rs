@@ -242,8 +242,9 @@ impl Pipeline {
         };
         let prediction = self.prediction.as_ref();
         let (tname, tracker) = &mut self.stages.tracker;
-        let tr =
+        let mut tr =
             tracker.track(rgbd, prediction, &prior, &mut Context::new(idx, &self.rig, prediction, report(rec, tname))).map_err(|e| stage_err(idx, tname, e))?;
+        checked_pose(&mut tr, &prior, report(rec, tname));
         rec.ms.track = ms_since(t);
         rec.status = tr.status;
         rec.inliers = tr.inliers;
@@ -277,7 +278,15 @@ impl Pipeline {
         let closure =
             closer.close(&input, fuser.as_ref(), &mut Context::new(idx, rig, prediction, report(rec, lname))).map_err(|e| stage_err(idx, lname, e))?;
         let mut pose = pose;
-        if let Some(c) = closure {
+        let closure = closure.filter(|c| {
+            let finite = is_finite(&c.t_world_cam);
+            if !finite {
+                report(rec, lname).warnings.push("closure rejected: its corrected pose is not finite".into());
+            }
+            finite
+        });
+        if let Some(mut c) = closure {
+            c.t_world_cam = crate::geometry::renormalised(c.t_world_cam);
             fuser.deform(&c, &mut Context::new(idx, rig, prediction, &mut fctx)).map_err(|e| stage_err(idx, fname, e))?;
             for (i, p) in self.trajectory.iter_mut().enumerate() {
                 p.t_world_cam = c.deformation.warp_pose(&p.t_world_cam, i as u32);
@@ -306,6 +315,28 @@ impl Pipeline {
         self.t_world_last = Some(*pose);
         Ok(())
     }
+}
+
+/// What the pipeline accepts of a tracker's pose: a non-finite pose is a lost frame at the
+/// prior, and a rotation quaternion off unit norm (which would scale the map it is fused into)
+/// is renormalised, with a warning beyond rounding.
+fn checked_pose(tr: &mut TrackResult, prior: &Iso3, report: &mut StageReport) {
+    if !is_finite(&tr.t_world_cam) {
+        report.warnings.push("the tracker returned a pose that is not finite: frame marked lost at the previous pose".into());
+        tr.t_world_cam = *prior;
+        tr.status = TrackStatus::Lost;
+        tr.warp = None;
+        return;
+    }
+    let err = crate::geometry::quaternion_norm_error(&tr.t_world_cam);
+    if err > 1e-6 {
+        report.warnings.push(format!("the tracker's rotation quaternion has norm 1 {} {err:.2e}: renormalised", if tr.t_world_cam.rotation.quaternion().norm() > 1.0 { "+" } else { "−" }));
+    }
+    tr.t_world_cam = crate::geometry::renormalised(tr.t_world_cam);
+}
+
+fn is_finite(t: &Iso3) -> bool {
+    t.translation.vector.iter().chain(t.rotation.coords.iter()).all(|v| v.is_finite())
 }
 
 fn report<'r>(rec: &'r mut FrameRecord, name: &str) -> &'r mut StageReport {

@@ -453,7 +453,7 @@ impl IcpRgb {
                 if !delta.iter().all(|v| v.is_finite()) {
                     break;
                 }
-                t = capsule_slam_framework::geometry::exp_se3(&delta) * t;
+                t = capsule_slam_framework::geometry::renormalised(capsule_slam_framework::geometry::exp_se3(&delta) * t);
                 total_iters += 1;
                 if delta.norm() < self.params.convergence {
                     break;

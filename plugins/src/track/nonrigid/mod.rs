@@ -120,7 +120,7 @@ impl Tracker for Nonrigid {
         match outcome {
             Ok(Some(result)) => {
                 if self.params.camera == CameraMode::Joint {
-                    self.rigid.set_last_motion(t_world_prev.inverse() * result.t_world_cam);
+                    self.rigid.set_last_motion(capsule_slam_framework::geometry::renormalised(t_world_prev.inverse() * result.t_world_cam));
                 }
                 Ok(result)
             }

@@ -11,7 +11,7 @@
 //! the rigid start). Bindings of model points to nodes are fixed for the frame, correspondences
 //! are re-projected every iteration (SurfelWarp), full steps (no line search).
 
-use capsule_slam_framework::geometry::exp_se3;
+use capsule_slam_framework::geometry::{exp_se3, renormalised};
 use capsule_slam_framework::{Iso3, StageError};
 use nalgebra::{Matrix3, Vector3, Vector6};
 use rayon::prelude::*;
@@ -225,7 +225,7 @@ impl<'a> Problem<'a> {
             self.graph.shift(&step[..UNKNOWNS * nodes], 1.0);
             if self.camera {
                 let d = Vector6::from_column_slice(&step[UNKNOWNS * nodes..]);
-                t = exp_se3(&d) * t;
+                t = renormalised(exp_se3(&d) * t);
                 xi += d;
             }
             out.iterations += 1;
