@@ -40,17 +40,25 @@ pub fn exp_se3(xi: &Vector6<f64>) -> Iso3 {
     Isometry3::from_parts(Translation3::from(v * rho), UnitQuaternion::from_scaled_axis(omega))
 }
 
-/// A pose left unchanged except that its rotation quaternion is scaled back to unit norm.
+/// A pose whose rotation quaternion is scaled back to unit norm once its norm is off by more
+/// than [`QUATERNION_NORM_TOLERANCE`] (below it, unchanged to the bit).
 ///
 /// nalgebra multiplies unit quaternions without renormalising, and inverts one by conjugating,
 /// which keeps its norm instead of inverting it: a pose composed every frame from its own
 /// predecessor (`t_world_prev * motion`, a motion `t_prev⁻¹ · t`) lets the norm's rounding error
 /// compound, and a rotation of norm ≠ 1 scales what it moves. Every tracker's increment and the
-/// pipeline's stored pose pass through here.
+/// pipeline's stored pose pass through here. The tolerance keeps runs whose rounding stays small
+/// bit-identical to runs without the guard (300 frames of `icp-rgb` drift to about 6e-10).
 pub fn renormalised(mut t: Iso3) -> Iso3 {
-    t.rotation.renormalize();
+    if quaternion_norm_error(&t) > QUATERNION_NORM_TOLERANCE {
+        t.rotation.renormalize();
+    }
     t
 }
+
+/// How far from 1 a rotation quaternion's norm may drift before [`renormalised`] rescales it
+/// (a scale error of twice this on everything the pose moves).
+pub const QUATERNION_NORM_TOLERANCE: f64 = 1e-9;
 
 /// How far a pose's rotation quaternion is from unit norm (0 for a true rotation).
 pub fn quaternion_norm_error(t: &Iso3) -> f64 {
@@ -133,6 +141,20 @@ pub fn orthonormalise(m: &Matrix3<f64>) -> Rotation3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn renormalised_rescales_a_drifted_rotation_and_leaves_rounding_alone() {
+        let t = exp_se3(&Vector6::new(0.01, -0.02, 0.03, 0.2, -0.1, 0.3));
+        let scaled = |s: f64| Iso3::from_parts(t.translation, UnitQuaternion::new_unchecked(t.rotation.into_inner() * s));
+        // Drift within the tolerance: the same bits.
+        let small = scaled(1.0 + 1e-10);
+        assert_eq!(renormalised(small), small);
+        // Beyond it: unit norm, the same rotation, the translation untouched.
+        let r = renormalised(scaled(1.001));
+        assert!(quaternion_norm_error(&r) < 1e-15);
+        assert!((r.rotation.coords - t.rotation.coords).norm() < 1e-15);
+        assert_eq!(r.translation, t.translation);
+    }
 
     #[test]
     fn nearest_respects_tolerance() {

@@ -330,7 +330,10 @@ fn checked_pose(tr: &mut TrackResult, prior: &Iso3, report: &mut StageReport) {
     }
     let err = crate::geometry::quaternion_norm_error(&tr.t_world_cam);
     if err > 1e-6 {
-        report.warnings.push(format!("the tracker's rotation quaternion has norm 1 {} {err:.2e}: renormalised", if tr.t_world_cam.rotation.quaternion().norm() > 1.0 { "+" } else { "−" }));
+        report.warnings.push(format!(
+            "the tracker's rotation quaternion has norm 1 {} {err:.2e}: renormalised",
+            if tr.t_world_cam.rotation.quaternion().norm() > 1.0 { "+" } else { "−" }
+        ));
     }
     tr.t_world_cam = crate::geometry::renormalised(tr.t_world_cam);
 }

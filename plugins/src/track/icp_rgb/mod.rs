@@ -324,6 +324,11 @@ impl IcpRgb {
         self.previous = Some(pyramid);
     }
 
+    /// The light model that relights the photometric term, if one was loaded.
+    pub(crate) fn light(&self) -> Option<&LightModel> {
+        self.light.as_ref()
+    }
+
     /// The previous tracked live frame's finest level (the photometric reference).
     pub(crate) fn previous_level0(&self) -> Option<&Level> {
         self.previous.as_ref().and_then(|p| p.first())

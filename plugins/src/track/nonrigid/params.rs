@@ -55,6 +55,9 @@ capsule_slam_framework::plugin_params! {
         pub sigma_icp_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
         /// Weight of the photometric term (paper Eq. 4: 0.1).
         pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
+        /// Relight the photometric reference to the live view with the rigid start's light model
+        /// (`[plugins.nonrigid.rigid] light_file`), as `icp-rgb` does: the light moves with the capsule.
+        pub relight: bool = true; unit = "-";
         /// Intensity noise scale.
         pub sigma_rgb: f64 = 0.02; unit = "-"; range = 1.0e-6..=1.0;
         /// Huber threshold in noise scales.

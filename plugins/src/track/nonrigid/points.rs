@@ -6,6 +6,7 @@
 //! lit like the live frame; `icp-rgb`'s `previous-frame` choice).
 
 use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::{GrayF32, Iso3, ModelView};
 use nalgebra::{Point3, Vector3};
 
@@ -57,6 +58,37 @@ pub fn sample(model: &ModelView, cam: &PinholeCamera, previous_gray: Option<&Gra
     out
 }
 
+/// Relights each point's reference intensity from the view it was read in (`t_world_ref`) to
+/// the live view (`t_world_live`, the rigid start): `encode(decode(I_ref) · L_live / L_ref)`, L
+/// the light model's response to a unit albedo at the point's pixel, position and normal
+/// (`icp-rgb`'s relighting, `relight.rs`, done once per frame here: the light moves with the
+/// capsule, and brightness constancy fails by about twice the relative change of distance).
+/// A point either view leaves unlit loses its reference. Returns how many were relit.
+pub fn relight(points: &mut [ModelPoint], light: &LightModel, cam: &PinholeCamera, t_world_ref: &Iso3, t_world_live: &Iso3) -> usize {
+    let response = |t_world_cam: &Iso3, p: &ModelPoint| -> Option<f64> {
+        let q = t_world_cam.inverse_transform_point(&p.x_world_m);
+        let mut n = t_world_cam.inverse_transform_vector(&p.n_world);
+        if n.dot(&q.coords) > 0.0 {
+            n = -n;
+        }
+        let uv = cam.project(&q)?;
+        let r = light.linear(cam, uv.x, uv.y, 1.0, &q, &n);
+        (r > 1e-9).then_some(r)
+    };
+    let mut relit = 0;
+    for p in points.iter_mut() {
+        let Some(g) = p.gray_ref else { continue };
+        p.gray_ref = match (response(t_world_ref, p), response(t_world_live, p)) {
+            (Some(r_ref), Some(r_live)) => {
+                relit += 1;
+                Some(light.encode(light.decode(g) * r_live / r_ref))
+            }
+            _ => None,
+        };
+    }
+    relit
+}
+
 /// What the live level says at the projection of a world point.
 pub struct LiveSample {
     /// The live vertex there, world frame.
@@ -102,4 +134,40 @@ pub fn look(level: &Level, t_world_cam: &Iso3, x_world: &Point3<f64>) -> Option<
         depth_m: f64::from(level.depth.at(ui, vi)),
         sigma_m: level.sigma.as_ref().map_or(0.0, |s| f64::from(s.at(ui, vi))),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use capsule_slam_framework::geometry::exp_se3;
+    use nalgebra::Vector6;
+
+    #[test]
+    fn relighting_gives_the_intensity_the_live_view_sees_of_the_same_albedo() {
+        let light = LightModel::default();
+        let cam = PinholeCamera::new(320, 320, 160.0, 160.0, 159.5, 159.5);
+        let t_ref = exp_se3(&Vector6::new(0.001, -0.002, 0.0, 0.01, 0.0, -0.02));
+        let t_live = exp_se3(&Vector6::new(0.002, -0.001, 0.006, 0.03, -0.02, 0.0));
+        let albedo = 0.6;
+        let x = Point3::new(0.004, -0.003, 0.032);
+        let n = Vector3::new(0.2, -0.1, -1.0).normalize();
+        // What a camera at `t` reads of the point (the phantom's image formation).
+        let seen = |t: &Iso3| {
+            let q = t.inverse_transform_point(&x);
+            let uv = cam.project(&q).unwrap();
+            light.encode(light.linear(&cam, uv.x, uv.y, albedo, &q, &t.inverse_transform_vector(&n)))
+        };
+        let mut pts = [ModelPoint { x_world_m: x, n_world: n, gray_ref: Some(seen(&t_ref)), sigma_m: 0.0 }];
+        assert_ne!((seen(&t_ref) * 1e3).round(), (seen(&t_live) * 1e3).round(), "the test needs a brightness change");
+        assert_eq!(relight(&mut pts, &light, &cam, &t_ref, &t_live), 1);
+        assert!((pts[0].gray_ref.unwrap() - seen(&t_live)).abs() < 1e-12, "{:?} vs {}", pts[0].gray_ref, seen(&t_live));
+        // A normal given facing away is the same surface; a point behind the live camera loses its reference.
+        let mut flipped = [ModelPoint { n_world: -n, gray_ref: Some(seen(&t_ref)), ..pts[0] }];
+        relight(&mut flipped, &light, &cam, &t_ref, &t_live);
+        assert!((flipped[0].gray_ref.unwrap() - seen(&t_live)).abs() < 1e-12);
+        let behind = Iso3::translation(0.0, 0.0, 0.05);
+        let mut lost = [ModelPoint { gray_ref: Some(0.5), ..pts[0] }];
+        assert_eq!(relight(&mut lost, &light, &cam, &t_ref, &behind), 0);
+        assert_eq!(lost[0].gray_ref, None);
+    }
 }

@@ -96,6 +96,10 @@ pub struct Outcome {
     pub icp_rms_m: f64,
     /// RMS point-to-plane residual at the first linearisation (the rigid start), metres.
     pub icp_rms_first_m: f64,
+    /// RMS photometric residual (intensity) at the last linearisation.
+    pub rgb_rms: f64,
+    /// The same at the first linearisation.
+    pub rgb_rms_first: f64,
     /// Symbolic analyses run (0: the previous one was reused).
     pub analyses: usize,
     /// Time building the pattern and the bindings' slots, ms.
@@ -176,8 +180,8 @@ impl<'a> Problem<'a> {
     }
 
     /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
-    /// camera departure `xi`; returns `JᵀWr` and (ICP inliers, ICP RMS).
-    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, (usize, f64)) {
+    /// camera departure `xi`; returns `JᵀWr` and (ICP inliers, ICP RMS, photometric RMS).
+    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, (usize, f64, f64)) {
         let (acc, stats) = self.accumulate(level, t, w, &layout.pattern, &layout.pair_ids);
         let mut g = layout.pattern.scatter(&acc);
         self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
@@ -203,6 +207,8 @@ impl<'a> Problem<'a> {
             inliers: 0,
             icp_rms_m: f64::INFINITY,
             icp_rms_first_m: f64::INFINITY,
+            rgb_rms: f64::INFINITY,
+            rgb_rms_first: f64::INFINITY,
             analyses,
             ms_setup: ms(clock),
             ms_assemble: 0.0,
@@ -211,9 +217,9 @@ impl<'a> Problem<'a> {
         for _ in 0..w.iterations {
             let clock = std::time::Instant::now();
             let (g, stats) = self.linearise(level, &t, &xi, w, &mut layout);
-            (out.inliers, out.icp_rms_m) = stats;
+            (out.inliers, out.icp_rms_m, out.rgb_rms) = stats;
             if out.iterations == 0 {
-                out.icp_rms_first_m = stats.1;
+                (out.icp_rms_first_m, out.rgb_rms_first) = (stats.1, stats.2);
             }
             out.ms_assemble += ms(clock);
             let clock = std::time::Instant::now();
@@ -239,39 +245,44 @@ impl<'a> Problem<'a> {
         Ok(out)
     }
 
-    /// The data terms at pose `t`: the accumulator and (inliers, ICP RMS),
+    /// The data terms at pose `t`: the accumulator and (inliers, ICP RMS, photometric RMS),
     /// summed over four fixed chunks in order (the same sums on any thread count).
-    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, pair_ids: &[Vec<usize>]) -> (Accumulator, (usize, f64)) {
+    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, pair_ids: &[Vec<usize>]) -> (Accumulator, (usize, f64, f64)) {
         let chunk = self.points.len().div_ceil(4).max(1);
-        let parts: Vec<(Accumulator, usize, f64)> = self
+        let parts: Vec<(Accumulator, [usize; 2], [f64; 2])> = self
             .points
             .par_chunks(chunk)
             .zip(pair_ids.par_chunks(chunk))
             .map(|(pts, ids)| {
                 let mut acc = pattern.accumulator();
-                let (mut n, mut sse) = (0usize, 0.0);
+                let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
                 for ((p, binding), pairs) in pts.iter().zip(ids) {
-                    if let Some(r2) = self.point_terms(level, t, w, p, binding, pairs, &mut |row, r, wt| acc.add(row, r, wt)) {
-                        n += 1;
-                        sse += r2;
+                    let r2 = self.point_terms(level, t, w, p, binding, pairs, &mut |row, r, wt| acc.add(row, r, wt));
+                    for (k, v) in r2.into_iter().enumerate() {
+                        if let Some(v) = v {
+                            n[k] += 1;
+                            sse[k] += v;
+                        }
                     }
                 }
                 (acc, n, sse)
             })
             .collect();
         let mut total = pattern.accumulator();
-        let (mut n, mut sse) = (0, 0.0);
+        let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
         for (a, pn, ps) in &parts {
             total.merge(a);
-            n += pn;
-            sse += ps;
+            for k in 0..2 {
+                n[k] += pn[k];
+                sse[k] += ps[k];
+            }
         }
-        let rms = if n == 0 { f64::INFINITY } else { (sse / n as f64).sqrt() };
-        (total, (n, rms))
+        let rms = |k: usize| if n[k] == 0 { f64::INFINITY } else { (sse[k] / n[k] as f64).sqrt() };
+        (total, (n[0], rms(0), rms(1)))
     }
 
     /// One point's residuals given to `sink`; the squared point-to-plane residual when the point
-    /// is an ICP inlier.
+    /// is an ICP inlier, and the squared photometric residual when it has one.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn point_terms(
         &self,
@@ -282,10 +293,10 @@ impl<'a> Problem<'a> {
         binding: &[(usize, f64)],
         pairs: &[usize],
         sink: &mut impl FnMut(&Row<'_>, f64, f64),
-    ) -> Option<f64> {
+    ) -> [Option<f64>; 2] {
         let d = &self.graph.deformation;
         let warped = d.warp_with(&p.x_world_m, binding);
-        let live = look(level, t, &warped)?;
+        let Some(live) = look(level, t, &warped) else { return [None; 2] };
         let mut rows: Vec<(usize, [f64; 12])> = Vec::with_capacity(binding.len());
         let mut icp_r2 = None;
         // σ of the residual (floor, live depth and model) for the gate and the Huber threshold;
@@ -313,8 +324,9 @@ impl<'a> Problem<'a> {
             let r = i - reference;
             let row = Row { nodes: &rows, pairs, camera: photo_camera_row(&m, &warped) };
             sink(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
+            return [icp_r2, Some(r * r)];
         }
-        icp_r2
+        [icp_r2, None]
     }
 
     /// Adds the graph's `E_rot` and `E_reg` rows (slots in visiting order).

@@ -212,7 +212,7 @@ fn bad_input_falls_back_without_a_panic() {
     one.nodes.cover(&points[..1], one.params.node_spacing_m, 1);
     match one.fit(&points, &live, &Iso3::identity()) {
         Ok(Fit::Solved { warp, .. }) => assert!(warp.nodes.iter().all(|n| n.translation_m.iter().all(|v| v.is_finite()))),
-        Ok(Fit::Fallback(_) | Fit::Still) | Err(_) => {}
+        Ok(Fit::Fallback(_) | Fit::Still(_)) | Err(_) => {}
     }
     // Model points with NaN positions bind no node.
     let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None, sigma_m: 0.0 }; 10];
