@@ -328,12 +328,9 @@ fn checked_pose(tr: &mut TrackResult, prior: &Iso3, report: &mut StageReport) {
         tr.warp = None;
         return;
     }
-    let err = crate::geometry::quaternion_norm_error(&tr.t_world_cam);
-    if err > 1e-6 {
-        report.warnings.push(format!(
-            "the tracker's rotation quaternion has norm 1 {} {err:.2e}: renormalised",
-            if tr.t_world_cam.rotation.quaternion().norm() > 1.0 { "+" } else { "−" }
-        ));
+    let norm = tr.t_world_cam.rotation.quaternion().norm();
+    if (norm - 1.0).abs() > 1e-6 {
+        report.warnings.push(format!("the tracker's rotation quaternion has norm 1 {:+.2e}: renormalised", norm - 1.0));
     }
     tr.t_world_cam = crate::geometry::renormalised(tr.t_world_cam);
 }

@@ -11,7 +11,10 @@ use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
 use super::{DeformationCloser, DeformationParams, Reference};
-use crate::fuse::surfel_cpu::predict;
+use crate::fuse::surfel_cpu::{SplatDepths, predict};
+
+/// How the tests splat the active and inactive models (organ-scale limits, 1 mm ε, c_stable 10).
+const DEPTHS: SplatDepths = SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 };
 
 /// Times of the new surfels start here (the old ones: 0 to 499, as a sweep along the wall).
 const NEW: u32 = 1000;
@@ -70,8 +73,8 @@ fn moved(surfels: &[Surfel], motion: &Iso3) -> Vec<Surfel> {
 
 fn close(sc: &Scene, new: &[Surfel], params: DeformationParams) -> (Option<LoopClosure>, StageReport) {
     let cam = &sc.phantom.camera;
-    let active = predict(new, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
-    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
+    let active = predict(new, |_| true, cam, &sc.pose, &DEPTHS);
+    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &DEPTHS);
     let map = Fixed(SurfelSet::new([sc.old.clone(), new.to_vec()].concat()));
     let rig = Rig::Mono(cam.clone());
     let base = sc.phantom.render(150).to_rgbd(cam);
@@ -228,8 +231,8 @@ fn a_loop_is_confirmed_by_consecutive_agreeing_registrations() {
     let cam = &sc.phantom.camera;
     let rig = Rig::Mono(cam.clone());
     let map = Fixed(SurfelSet::new([sc.old.clone(), new.clone()].concat()));
-    let active = predict(&new, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
-    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &crate::fuse::surfel_cpu::SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 10.0 });
+    let active = predict(&new, |_| true, cam, &sc.pose, &DEPTHS);
+    let inactive = predict(&sc.old, |_| true, cam, &sc.pose, &DEPTHS);
     let base = sc.phantom.render(150).to_rgbd(cam);
     let mut closer = DeformationCloser::new(DeformationParams { consistent_frames: 2, ..DeformationParams::default() });
     let mut at = |index: usize, active: &ModelView| {
