@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
-use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live, table};
+use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live, evaluate_warp, table};
 use capsule_slam_eval::rpe::Delta;
 use capsule_slam_eval::{align_trajectory, associate};
 use capsule_slam_framework::geometry::StampedPose;
@@ -38,7 +38,8 @@ pub struct EvalArgs {
     map: Option<PathBuf>,
     /// The true surface at the last frame (PLY, e.g. a phantom's `gt_surface_NNNNNN.ply`) for
     /// the live surface error: the map's surfels seen in the last 30 frames, moved by the
-    /// trajectory alignment, against it; needs --map.
+    /// trajectory alignment, against it; needs --map. With --surface-gt, also the warp error
+    /// against the wall's motion in the `gt_surface_NNNNNN.ply` files beside it.
     #[arg(long)]
     live_surface_gt: Option<PathBuf>,
     /// The frame the live surface error is measured at (default: the map's newest surfel).
@@ -81,6 +82,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             bail!("no surfel of the map was seen in the 30 frames up to frame {last}; give --last-frame");
         }
         figures.extend(live_figures);
+        if let Some((_, rest)) = &surfaces {
+            let dir = live.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+            match capsule_slam_run::truth::wall_motion(dir, rest, last as usize) {
+                Ok((wall, now)) => figures.extend(evaluate_warp(&est, &gt, &map, &wall, &now, last, &opts)),
+                Err(why) => eprintln!("warning: warp error off: {why}"),
+            }
+        }
     }
     if !figures.contains_key("ate_rmse_m") {
         bail!("fewer than 3 poses of {} match {} within {} s", args.est.display(), args.gt.display(), args.tolerance);

@@ -162,6 +162,16 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
             EvalOptions::default().live_window_frames
         );
     }
+    if let (Some(e), Some(n), Some(t)) =
+        (summary.metrics.get("warp_error_rmse_m"), summary.metrics.get("warp_error_normal_rmse_m"), summary.metrics.get("warp_true_rms_m"))
+    {
+        println!(
+            "warp error        {:.3} mm RMSE, {:.3} along the wall normal (surfels seen at the last frame, since their creation; the wall moved {:.3} mm RMS)",
+            e * 1e3,
+            n * 1e3,
+            t * 1e3
+        );
+    }
     if let Some(a) = summary.metrics.get("depth_abs_rel") {
         println!("depth AbsRel      {a:.4} (estimated against the input's depth, mean over frames)");
     }

@@ -66,6 +66,7 @@ fn warp_map(c: &mut Criterion) {
                 t,
                 albedo: 0.0,
                 sigma_m: 0.0,
+                warp_m: Vector3::zeros(),
             }
         })
         .collect();

@@ -34,6 +34,7 @@ fn io(c: &mut Criterion) {
                 t: i / 1000,
                 albedo: 0.4,
                 sigma_m: 0.0,
+                warp_m: Vector3::zeros(),
             })
             .collect(),
     );

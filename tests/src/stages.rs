@@ -61,6 +61,7 @@ impl Fuser for PointFuser {
                     t: self.now,
                     albedo: 0.0,
                     sigma_m: 0.0,
+                    warp_m: Vector3::zeros(),
                 });
                 added += 1;
             }

@@ -51,8 +51,19 @@ fn the_live_surface_of_an_oracle_run_lies_on_the_wall_and_a_moving_wall_shows_in
     assert!(r > 5.0 * live(&still, "live_surface_rmse_m") && r < 0.004, "live surface RMSE {r}");
     assert!(live(&wave, "live_surface_p95_m") >= live(&wave, "live_surface_median_m"));
 
+    // The warp error: a tracker that never warps the map has its whole error in the wall's true
+    // motion, which is zero on the still wall and up to twice the wave on the moving one.
+    assert_eq!(live(&still, "warp_true_rms_m"), 0.0);
+    assert_eq!(live(&still, "warp_error_rmse_m"), 0.0);
+    assert_eq!(live(&wave, "warp_estimated_rms_m"), 0.0);
+    let (e, t) = (live(&wave, "warp_error_rmse_m"), live(&wave, "warp_true_rms_m"));
+    assert!(e == t && t > 1e-4 && t < 0.008, "warp error {e}, true motion {t}");
+    assert!(live(&wave, "warp_error_points") > 1000.0 && live(&wave, "warp_error_skipped") == 0.0);
+
     // A run that ends where the moving wall has no true surface says so and reports no figure.
     let short = oracle_run(&moving, &tmp.path().join("out-short"), 25);
     assert!(!short.metrics.contains_key("live_surface_rmse_m"));
     assert!(short.warnings.iter().any(|w| w.contains("frame 24") && w.contains("--surface-every")), "{:?}", short.warnings);
+    assert!(!short.metrics.contains_key("warp_error_rmse_m"));
+    assert!(short.warnings.iter().any(|w| w.starts_with("warp error off") && w.contains("frame 24")), "{:?}", short.warnings);
 }

@@ -14,9 +14,9 @@ fn surfel() -> impl Strategy<Value = Surfel> {
         0.0f32..0.01,
         0u32..5000,
         0u32..5000,
-        (0.0f32..1.0, 0.0f32..0.01),
+        (0.0f32..1.0, 0.0f32..0.01, prop::array::uniform3(-0.005f32..0.005)),
     )
-        .prop_map(|(p, n, c, conf, r, t0, t, (albedo, sigma_m))| Surfel {
+        .prop_map(|(p, n, c, conf, r, t0, t, (albedo, sigma_m, w))| Surfel {
             position_m: Point3::new(p[0], p[1], p[2]),
             normal: Vector3::new(n[0], n[1], n[2]),
             colour: c,
@@ -26,6 +26,7 @@ fn surfel() -> impl Strategy<Value = Surfel> {
             t,
             albedo,
             sigma_m,
+            warp_m: Vector3::new(w[0], w[1], w[2]),
         })
 }
 

@@ -35,6 +35,11 @@ pub struct Surfel {
     /// `√(Σα / Σ(α/σ²))` of their per-pixel σ weighed by confidence α (issue 17); 0 = its depth
     /// carried no σ.
     pub sigma_m: f32,
+    /// Displacement the trackers' warps (the wall's motion, [`crate::stage::TrackResult::warp`])
+    /// have applied to it since its creation, metres, world frame; a loop closure's correction of
+    /// drift is not counted. Zero under a rigid tracker. Evaluation compares it with the true
+    /// wall's motion (the warp error).
+    pub warp_m: Vector3<f32>,
 }
 
 impl Surfel {
@@ -160,6 +165,7 @@ mod tests {
             t: t0,
             albedo: 0.0,
             sigma_m: 0.0,
+            warp_m: Vector3::zeros(),
         }
     }
 

@@ -9,6 +9,7 @@ pub mod live;
 pub mod report;
 pub mod rpe;
 pub mod surface;
+pub mod warp;
 
 use nalgebra::{Point3, UnitQuaternion};
 use serde::Serialize;

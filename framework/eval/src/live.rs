@@ -75,6 +75,7 @@ mod tests {
                 t,
                 albedo: 0.0,
                 sigma_m: 0.0,
+                warp_m: Vector3::zeros(),
             })
             .collect();
         SurfelSet { surfels }

@@ -4,6 +4,7 @@
 use std::collections::BTreeMap;
 
 use super::live::live_surface_error;
+use super::warp::{WallMotion, warp_error};
 use super::rpe::{Delta, rpe};
 use super::surface::{SurfaceOptions, surface_error};
 use super::{align_trajectory, ate, path_length_m};
@@ -23,11 +24,14 @@ pub struct EvalOptions {
     pub surface: SurfaceOptions,
     /// The live surface error counts the surfels seen in the last this many frames.
     pub live_window_frames: u32,
+    /// The warp error interpolates the true wall between samples at most this many frames
+    /// apart ([`crate::warp`]).
+    pub warp_max_gap_frames: u32,
 }
 
 impl Default for EvalOptions {
     fn default() -> Self {
-        Self { tolerance_s: 0.02, sim3: false, rpe_delta: Delta::Frames(1), surface: SurfaceOptions::default(), live_window_frames: 30 }
+        Self { tolerance_s: 0.02, sim3: false, rpe_delta: Delta::Frames(1), surface: SurfaceOptions::default(), live_window_frames: 30, warp_max_gap_frames: 30 }
     }
 }
 
@@ -85,7 +89,7 @@ pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet
 
 /// A readable table of the figures (millimetres and degrees).
 pub fn table(m: &BTreeMap<String, f64>) -> String {
-    let rows: [(&str, &str, f64, &str); 20] = [
+    let rows: [(&str, &str, f64, &str); 23] = [
         ("path_length_m", "path length", 1e3, "mm"),
         ("ate_rmse_m", "ATE RMSE, SE(3)", 1e3, "mm"),
         ("ate_rmse_sim3_m", "ATE RMSE, Sim(3)", 1e3, "mm"),
@@ -106,6 +110,9 @@ pub fn table(m: &BTreeMap<String, f64>) -> String {
         ("live_surface_rmse_m", "live surface RMSE", 1e3, "mm"),
         ("live_surface_median_m", "live surface median", 1e3, "mm"),
         ("live_surface_p95_m", "live surface p95", 1e3, "mm"),
+        ("warp_error_rmse_m", "warp error RMSE", 1e3, "mm"),
+        ("warp_error_normal_rmse_m", "  along the wall normal", 1e3, "mm"),
+        ("warp_true_rms_m", "  true wall motion RMS", 1e3, "mm"),
     ];
     let mut out = String::new();
     for (key, label, scale, unit) in rows {
@@ -136,6 +143,33 @@ pub fn evaluate_live(
         m.insert("live_surface_median_m".into(), e.median_m);
         m.insert("live_surface_p95_m".into(), e.p95_m);
         m.insert("live_surface_points".into(), e.points as f64);
+    }
+    m
+}
+
+/// The warp error of `map` ([`crate::warp`]): its surfels seen at `last_frame`, moved by the
+/// same trajectory alignment as [`evaluate_live`], against the true wall's motion `wall`, whose
+/// surface at `last_frame` is `truth_now`. Keys `warp_error_rmse_m`,
+/// `warp_error_normal_rmse_m`, `warp_true_rms_m`, `warp_estimated_rms_m`, `warp_error_points`,
+/// `warp_error_skipped`; empty when nothing is measured or the trajectory cannot be aligned.
+pub fn evaluate_warp(
+    est: &[StampedPose],
+    gt: &[StampedPose],
+    map: &SurfelSet,
+    wall: &WallMotion,
+    truth_now: &SurfelSet,
+    last_frame: u32,
+    opts: &EvalOptions,
+) -> BTreeMap<String, f64> {
+    let mut m = BTreeMap::new();
+    let Some(align) = align_trajectory(est, gt, opts.tolerance_s, opts.sim3) else { return m };
+    if let Some(e) = warp_error(map, &align, wall, truth_now, last_frame, opts.warp_max_gap_frames) {
+        m.insert("warp_error_rmse_m".into(), e.rmse_m);
+        m.insert("warp_error_normal_rmse_m".into(), e.normal_rmse_m);
+        m.insert("warp_true_rms_m".into(), e.true_rms_m);
+        m.insert("warp_estimated_rms_m".into(), e.estimated_rms_m);
+        m.insert("warp_error_points".into(), e.points as f64);
+        m.insert("warp_error_skipped".into(), e.skipped as f64);
     }
     m
 }

@@ -214,6 +214,7 @@ mod tests {
                     t: 0,
                     albedo: 0.0,
                     sigma_m: 0.0,
+                    warp_m: Vector3::zeros(),
                 });
             }
         }

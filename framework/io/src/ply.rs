@@ -1,8 +1,9 @@
 //! PLY point clouds: the surfel map (`map.ply`) and ground-truth surfaces.
 //!
 //! Written as binary little-endian with `x y z nx ny nz red green blue` (what Open3D, MeshLab
-//! and CloudCompare read) plus `confidence radius t0 t albedo sigma` (`sigma`: the surfel's depth σ in metres,
-//! 0 where its depth carried none). The reader takes ASCII or binary
+//! and CloudCompare read) plus `confidence radius t0 t albedo sigma warp_x warp_y warp_z` (`sigma`: the surfel's depth σ in
+//! metres, 0 where its depth carried none; `warp_*`: the displacement the trackers' warps gave it
+//! since its creation, metres). The reader takes ASCII or binary
 //! little-endian files with any scalar properties of the vertex element and fills what it
 //! finds (normals, colour and surfel attributes are optional).
 
@@ -23,7 +24,8 @@ pub fn write_surfels(path: &Path, set: &SurfelSet) -> Result<(), LoadError> {
         "ply\nformat binary_little_endian 1.0\ncomment capsule-slam surfel map (metres, world frame)\nelement vertex {}\n\
          property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\n\
          property uchar red\nproperty uchar green\nproperty uchar blue\nproperty float confidence\nproperty float radius\n\
-         property uint t0\nproperty uint t\nproperty float albedo\nproperty float sigma\nend_header\n",
+         property uint t0\nproperty uint t\nproperty float albedo\nproperty float sigma\n\
+         property float warp_x\nproperty float warp_y\nproperty float warp_z\nend_header\n",
         set.len()
     );
     f.write_all(header.as_bytes()).map_err(io)?;
@@ -38,6 +40,9 @@ pub fn write_surfels(path: &Path, set: &SurfelSet) -> Result<(), LoadError> {
         f.write_all(&s.t.to_le_bytes()).map_err(io)?;
         f.write_all(&s.albedo.to_le_bytes()).map_err(io)?;
         f.write_all(&s.sigma_m.to_le_bytes()).map_err(io)?;
+        for v in [s.warp_m.x, s.warp_m.y, s.warp_m.z] {
+            f.write_all(&v.to_le_bytes()).map_err(io)?;
+        }
     }
     f.flush().map_err(io)?;
     drop(f);
@@ -95,7 +100,7 @@ impl Scalar {
 }
 
 /// Reads the vertices of a PLY file as surfels (missing attributes: zero normal, grey colour,
-/// confidence 1, radius 0, times 0, albedo 0, σ 0). The set keeps file order; use [`SurfelSet::new`] to sort.
+/// confidence 1, radius 0, times 0, albedo 0, σ 0, warp 0). The set keeps file order; use [`SurfelSet::new`] to sort.
 pub fn read_surfels(path: &Path) -> Result<SurfelSet, LoadError> {
     let file = std::fs::File::open(path).map_err(|e| LoadError::io(path, e))?;
     let mut r = Lines { path, reader: BufReader::new(file), line: String::new(), number: 0 };
@@ -119,6 +124,9 @@ pub fn read_surfels(path: &Path) -> Result<SurfelSet, LoadError> {
         idx("t"),
         idx("albedo"),
         idx("sigma"),
+        idx("warp_x"),
+        idx("warp_y"),
+        idx("warp_z"),
     ];
     let mut vals = vec![0.0f64; props.len()];
     let mut out = Vec::with_capacity(header.n_vertex);
@@ -146,6 +154,7 @@ pub fn read_surfels(path: &Path) -> Result<SurfelSet, LoadError> {
             t: g(opt[9], 0.0) as u32,
             albedo: g(opt[10], 0.0) as f32,
             sigma_m: g(opt[11], 0.0) as f32,
+            warp_m: Vector3::new(g(opt[12], 0.0) as f32, g(opt[13], 0.0) as f32, g(opt[14], 0.0) as f32),
         });
     }
     Ok(SurfelSet { surfels: out })

@@ -244,6 +244,7 @@ impl Phantom {
                         t: 0,
                         albedo: capsule_slam_framework::image::luminance(a) as f32,
                         sigma_m: 0.0,
+                        warp_m: Vector3::zeros(),
                     }
                 })
             })

@@ -5,6 +5,7 @@
 
 pub mod runner;
 pub mod summary;
+pub mod truth;
 pub mod writer;
 
 pub use runner::{GT_SURFACE_FILE, RunOptions, run};

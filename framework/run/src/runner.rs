@@ -2,15 +2,14 @@
 //! with that error after writing what exists: the trajectory and `frames.csv` up to frame
 //! N − 1, the map and a `summary.json` whose status names the failure.
 
-use std::borrow::Cow;
-
-use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live};
+use capsule_slam_eval::report::{EvalOptions, evaluate, evaluate_live, evaluate_warp};
 use capsule_slam_framework::error::PipelineError;
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::geometry::StampedPose;
 use capsule_slam_io::{Dataset, ply};
 
 use crate::summary::{Summary, frame_row};
+use crate::truth::{LiveTruth, live_truth, wall_motion};
 use crate::writer::RunWriter;
 use capsule_slam_framework::map::SurfelSet;
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
@@ -135,41 +134,23 @@ fn evaluate_run(
         (_, LiveTruth::Missing(why)) => summary.warnings.push(why),
         _ => {}
     }
-    Ok(())
-}
-
-/// The true surface at a frame, for the live surface error.
-enum LiveTruth<'a> {
-    /// The surface at that frame (a rigid input's rest shape, borrowed).
-    At(Cow<'a, SurfelSet>),
-    /// The input has no ground-truth surface.
-    None,
-    /// A deforming input without the surface at that frame: why the metric is off.
-    Missing(String),
-}
-
-/// The true surface at frame `last`: `gt_surface_<last>.ply` of a deforming phantom (one with
-/// per-frame surfaces), the rest shape of a rigid one.
-fn live_truth<'a>(dataset: &Dataset, rest: Option<&'a SurfelSet>, last: usize) -> Result<LiveTruth<'a>, PipelineError> {
-    let Some(rest) = rest else { return Ok(LiveTruth::None) };
-    let dir = dataset.dir();
-    let at = dir.join(format!("gt_surface_{last:06}.ply"));
-    if at.exists() {
-        return Ok(LiveTruth::At(Cow::Owned(ply::read_surfels(&at)?)));
+    if let (Some(m), Some(rest)) = (map, truth) {
+        match wall_motion(dataset.dir(), rest, last) {
+            Ok((wall, now)) => {
+                let opts = EvalOptions { sim3: pipeline.depth_source() == DepthSource::Estimated, ..*eval_opts };
+                let figures = evaluate_warp(pipeline.trajectory(), gt, m, &wall, &now, last as u32, &opts);
+                if figures.is_empty() {
+                    summary.warnings.push(format!(
+                        "warp error off: no surfel seen at the last frame {last} was created within {} frames of a true surface; make the sequence with `capsule-slam synth --surface-every N` (N ≤ {})",
+                        opts.warp_max_gap_frames, opts.warp_max_gap_frames
+                    ));
+                }
+                summary.metrics.extend(figures);
+            }
+            Err(why) => summary.warnings.push(format!("warp error off: {why}")),
+        }
     }
-    let deforming = std::fs::read_dir(dir)
-        .map_err(|e| capsule_slam_framework::LoadError::io(dir, e))?
-        .flatten()
-        .any(|e| e.file_name().to_string_lossy().starts_with("gt_surface_"));
-    Ok(if deforming {
-        LiveTruth::Missing(format!(
-            "live surface error off: the wall moves but {} has no true surface at the last frame {last} ({}); make the sequence with `capsule-slam synth --surface-every N` or run to a frame that has one",
-            dir.display(),
-            at.display()
-        ))
-    } else {
-        LiveTruth::At(Cow::Borrowed(rest))
-    })
+    Ok(())
 }
 
 /// The input's ground-truth surface, when it has one.

@@ -68,6 +68,7 @@ impl Measurement {
             t: now,
             albedo: self.albedo,
             sigma_m: self.sigma_m,
+            warp_m: Vector3::zeros(),
         }
     }
 }

@@ -339,6 +339,15 @@ impl Warper<'_> {
         s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
         s.position_m = d.warp_with(&p, &infl).cast();
     }
+
+    /// Warps a surfel as [`Self::warp_surfel`] and adds its displacement to
+    /// [`Surfel::warp_m`]: for a tracker's warp (the wall's own motion), not for a loop
+    /// closure's correction of drift.
+    pub fn warp_surfel_as_motion(&self, s: &mut Surfel) {
+        let before = s.position_m;
+        self.warp_surfel(s);
+        s.warp_m += s.position_m - before;
+    }
 }
 
 #[cfg(test)]

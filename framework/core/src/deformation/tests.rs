@@ -105,6 +105,7 @@ fn a_surfel_is_warped_by_the_time_the_deformation_names() {
         t: 110,
         albedo: 0.0,
         sigma_m: 0.0,
+        warp_m: nalgebra::Vector3::zeros(),
     };
     let mut created = s;
     d.clone().warp_surfel(&mut created);
@@ -147,6 +148,7 @@ fn a_reach_leaves_far_points_alone_and_the_grid_agrees_with_the_scan() {
         t: 0,
         albedo: 0.0,
         sigma_m: 0.0,
+        warp_m: nalgebra::Vector3::zeros(),
     };
     let warper = d.warper();
     for (x, y, moves) in [(0.012, 0.017, true), (0.031, -0.005, true), (0.06, 0.06, false), (-0.03, 0.01, false)] {

@@ -54,10 +54,15 @@ impl SurfelCpu {
         &self.surfels
     }
 
-    /// Moves every surfel by `d` (Eqs. 5–7 of the deformation graph: positions and normals).
-    fn warp_surfels(&mut self, d: &Deformation) {
+    /// Moves every surfel by `d` (Eqs. 5–7 of the deformation graph: positions and normals);
+    /// with `motion` (a tracker's warp) the displacement is added to each surfel's `warp_m`.
+    fn warp_surfels(&mut self, d: &Deformation, motion: bool) {
         let warper = d.warper();
-        self.surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        if motion {
+            self.surfels.par_iter_mut().for_each(|s| warper.warp_surfel_as_motion(s));
+        } else {
+            self.surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        }
     }
 
     fn is_active(&self, s: &Surfel, now: u32) -> bool {
@@ -151,7 +156,7 @@ impl Fuser for SurfelCpu {
 
     fn deform(&mut self, closure: &LoopClosure, ctx: &mut Context) -> Result<(), StageError> {
         let clock = std::time::Instant::now();
-        self.warp_surfels(&closure.deformation);
+        self.warp_surfels(&closure.deformation, false);
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         // Reactivate the stable inactive surfels seen from the corrected pose.
         let now = (ctx.frame_index as u32).max(self.now);
@@ -162,7 +167,7 @@ impl Fuser for SurfelCpu {
 
     fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
         let clock = std::time::Instant::now();
-        self.warp_surfels(deformation);
+        self.warp_surfels(deformation, true);
         ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }

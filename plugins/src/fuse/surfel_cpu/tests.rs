@@ -151,6 +151,7 @@ fn disc_at(z_m: f32, confidence: f32, colour: u8) -> capsule_slam_framework::Sur
         t: 0,
         albedo: 0.0,
         sigma_m: 0.0,
+        warp_m: nalgebra::Vector3::zeros(),
     }
 }
 
@@ -194,4 +195,41 @@ fn the_splat_shows_the_most_confident_disc_within_blend_depth_of_the_nearest() {
     let tie = [disc_at(0.0506, 5.0, 1), disc_at(0.0500, 5.0, 2)];
     let v = predict(&tie, |_| true, &cam, &pose, &SplatDepths { min_m: 0.001, max_m: 0.2, blend_m: 0.001, stable: 1000.0 });
     assert_eq!(v.colour.pixel(32, 32)[0], 1);
+}
+
+#[test]
+fn a_trackers_warp_adds_up_in_each_surfel_and_a_closure_does_not() {
+    use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
+    use capsule_slam_framework::stage::LoopClosure;
+    use nalgebra::{Point3, Vector3};
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let f = rgbd(&ph, 3);
+    let pose = f.gt_t_world_cam.unwrap();
+    let mut s = fuser(SurfelParams::default(), &ph);
+    let mut r = StageReport::default();
+    s.fuse(&f, &pose, &mut Context::new(3, &rig, None, &mut r)).unwrap();
+    assert!(s.surfels().iter().all(|x| x.warp_m == Vector3::zeros()), "a new surfel has not been warped");
+    // Two warps that push every node 0.3 mm and then 0.2 mm along z: each surfel has moved 0.5 mm.
+    let push = |dz: f64| {
+        let nodes = (0..27)
+            .map(|i| {
+                let p = Point3::new(f64::from(i % 3) * 0.03 - 0.03, f64::from((i / 3) % 3) * 0.03 - 0.03, f64::from(i / 9) * 0.03);
+                let mut n = DeformationNode::identity(p, 0);
+                n.translation_m = Vector3::new(0.0, 0.0, dz);
+                n
+            })
+            .collect();
+        Deformation::new(nodes, 4, Window::All)
+    };
+    let before: Vec<_> = s.surfels().iter().map(|x| x.position_m).collect();
+    s.warp(&push(3e-4), &mut Context::new(4, &rig, None, &mut r)).unwrap();
+    s.warp(&push(2e-4), &mut Context::new(5, &rig, None, &mut r)).unwrap();
+    for (x, p0) in s.surfels().iter().zip(&before) {
+        assert!((x.warp_m - Vector3::new(0.0, 0.0, 5e-4)).norm() < 1e-7, "{:?}", x.warp_m);
+        assert!((x.warp_m - (x.position_m - p0)).norm() < 1e-7);
+    }
+    // A loop closure moves the map too, but that corrects drift: not wall motion.
+    s.deform(&LoopClosure { deformation: push(1e-3), t_world_cam: pose }, &mut Context::new(6, &rig, None, &mut r)).unwrap();
+    assert!(s.surfels().iter().all(|x| (x.warp_m - Vector3::new(0.0, 0.0, 5e-4)).norm() < 1e-7));
 }

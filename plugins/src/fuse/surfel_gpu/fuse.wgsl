@@ -17,6 +17,10 @@ struct Surfel {
     t: u32,
     albedo: f32,
     sigma: f32,
+    // The displacement the trackers' warps gave it (host-side; the kernels only carry it).
+    warp_x: f32,
+    warp_y: f32,
+    warp_z: f32,
 }
 
 struct Measurement {
@@ -306,7 +310,7 @@ fn append(@builtin(global_invocation_id) g: vec3<u32>) {
     if (flags[P.add_base + j] == 0u) { return; }
     let m = meas[j];
     let at = atomicLoad(&counters[SLOT_KEPT]) + offsets[P.add_base + j];
-    surf_b[at] = Surfel(m.pos, m.conf, m.nrm, m.radius, m.colour, P.now, P.now, m.albedo, m.sigma);
+    surf_b[at] = Surfel(m.pos, m.conf, m.nrm, m.radius, m.colour, P.now, P.now, m.albedo, m.sigma, 0.0, 0.0, 0.0);
 }
 
 // Active and stable counts of surf_b[.. kept + added].

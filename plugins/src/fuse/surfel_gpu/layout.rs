@@ -22,7 +22,7 @@ pub struct GpuSurfel {
     t: u32,
     albedo: f32,
     sigma: f32,
-    pad: [f32; 3],
+    warp: [f32; 3],
 }
 
 pub fn pack_colour(c: [u8; 3]) -> u32 {
@@ -45,7 +45,7 @@ impl From<&Surfel> for GpuSurfel {
             t: s.t,
             albedo: s.albedo,
             sigma: s.sigma_m,
-            pad: [0.0; 3],
+            warp: s.warp_m.into(),
         }
     }
 }
@@ -62,6 +62,7 @@ impl From<&GpuSurfel> for Surfel {
             t: s.t,
             albedo: s.albedo,
             sigma_m: s.sigma,
+            warp_m: Vector3::from(s.warp),
         }
     }
 }

@@ -65,11 +65,16 @@ impl SurfelGpu {
     }
 
     /// Warps the map on the host (download, `d`, then `then`, upload) and recounts it: a
-    /// deformation's influences need a k-d tree, and a warp is one pass over the map.
-    fn rewrite(&mut self, d: &Deformation, then: impl FnOnce(&mut [Surfel], &SurfelParams)) -> Result<(), StageError> {
+    /// deformation's influences need a k-d tree, and a warp is one pass over the map. With
+    /// `motion` (a tracker's warp) the displacement is added to each surfel's `warp_m`.
+    fn rewrite(&mut self, d: &Deformation, motion: bool, then: impl FnOnce(&mut [Surfel], &SurfelParams)) -> Result<(), StageError> {
         let mut surfels = self.map.download()?;
         let warper = d.warper();
-        surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        if motion {
+            surfels.par_iter_mut().for_each(|s| warper.warp_surfel_as_motion(s));
+        } else {
+            surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
+        }
         then(&mut surfels, &self.params);
         self.map.upload(&surfels)?;
         let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
@@ -120,7 +125,7 @@ impl Fuser for SurfelGpu {
         let clock = std::time::Instant::now();
         let now = (ctx.frame_index as u32).max(self.now);
         let mut reactivated = 0;
-        self.rewrite(&closure.deformation, |surfels, params| reactivated = reactivate(surfels, &closure.t_world_cam, ctx.rig.camera(), now, params))?;
+        self.rewrite(&closure.deformation, false, |surfels, params| reactivated = reactivate(surfels, &closure.t_world_cam, ctx.rig.camera(), now, params))?;
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         ctx.count("surfels_reactivated", reactivated as f64);
         Ok(())
@@ -128,7 +133,7 @@ impl Fuser for SurfelGpu {
 
     fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
         let clock = std::time::Instant::now();
-        self.rewrite(deformation, |_, _| {})?;
+        self.rewrite(deformation, true, |_, _| {})?;
         ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }

@@ -61,6 +61,7 @@ fn agreement(g: &[Surfel], c: &[Surfel]) -> f64 {
                 && (a.confidence - b.confidence).abs() < 1e-4
                 && (a.radius_m - b.radius_m).abs() < 1e-7
                 && (a.sigma_m - b.sigma_m).abs() <= 1e-5 * b.sigma_m
+                && (a.warp_m - b.warp_m).norm() < 1e-6
                 && a.colour.iter().zip(&b.colour).all(|(x, y)| x.abs_diff(*y) <= 1)
         })
         .count();
@@ -193,6 +194,7 @@ fn a_closure_moves_the_gpu_map_like_the_cpu_map_and_reactivates_it() {
     assert!(g.stats().active > before.active);
     let (sg, sc) = (g.snapshot().unwrap().surfels, c.snapshot().unwrap().surfels);
     assert!(agreement(&sg, &sc) > 0.999);
+    assert!(sg.iter().all(|s| s.warp_m == Vector3::zeros()), "a closure corrects drift: it is not wall motion");
     // And it moved rigidly (a snapshot is sorted by position, so compare the centroid and the
     // mean normal): R c + s, R n̄.
     let moved = rot * centroid(&old) + shift;
@@ -246,14 +248,15 @@ fn a_trackers_warp_moves_both_maps_alike_and_nothing_else() {
     assert!(agreement(&sg, &sc) > 0.999, "the GPU and the CPU map moved alike: {}", agreement(&sg, &sc));
     assert_eq!(c.stats(), before, "a warp adds, removes and reactivates nothing");
     assert_eq!(g.stats(), before);
-    // Every surfel moved where the deformation puts it (the snapshot is sorted by position, so
-    // compare the sorted warped old map).
+    // Every surfel moved where the deformation puts it, and counts the move as wall motion
+    // (the snapshot is sorted by position, so compare the sorted warped old map).
     let mut expected = old.clone();
     let warper = warp.warper();
-    expected.iter_mut().for_each(|s| warper.warp_surfel(s));
+    expected.iter_mut().for_each(|s| warper.warp_surfel_as_motion(s));
     let expected = capsule_slam_framework::SurfelSet::new(expected).surfels;
-    let moved = sc.iter().zip(&expected).filter(|(a, b)| (a.position_m - b.position_m).norm() < 1e-7).count();
+    let moved = sc.iter().zip(&expected).filter(|(a, b)| (a.position_m - b.position_m).norm() < 1e-7 && (a.warp_m - b.warp_m).norm() < 1e-7).count();
     assert_eq!(moved, sc.len());
+    assert!(sg.iter().filter(|s| s.warp_m.z > 1e-4).count() > sg.len() / 2, "the GPU map carries the displacement too");
     let mean_dz = sc.iter().map(|s| f64::from(s.position_m.z)).sum::<f64>() / sc.len() as f64
         - old.iter().map(|s| f64::from(s.position_m.z)).sum::<f64>() / old.len() as f64;
     assert!(mean_dz > 1e-4, "the map moved along z: {mean_dz}");
