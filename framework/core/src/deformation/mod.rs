@@ -244,7 +244,7 @@ impl Deformation {
             let positions: Vec<Point3<f64>> = self.nodes.iter().map(|n| n.position_m).collect();
             NodeGrid::new(&positions, r)
         });
-        Warper { deformation: self, moving_before, grid }
+        Warper { deformation: self, normal_maps: self.nodes.iter().map(|n| normal_map(&n.rotation)).collect(), moving_before, grid }
     }
 
     /// Warps a surfel's position and normal in place (timed by [`Deformation::surfel_time`]).
@@ -269,14 +269,7 @@ impl Deformation {
 
     /// [`Deformation::warp_normal`] with precomputed influences.
     pub fn warp_normal_with(&self, n: &Vector3<f64>, influences: &[(usize, f64)]) -> Vector3<f64> {
-        let mut out = Vector3::zeros();
-        for &(i, w) in influences {
-            let r = self.nodes[i].rotation;
-            let r_inv_t = r.try_inverse().map_or(r, |m| m.transpose());
-            out += w * (r_inv_t * n);
-        }
-        let len = out.norm();
-        if len > 1e-12 { out / len } else { *n }
+        blend_normal(n, influences, |i| normal_map(&self.nodes[i].rotation))
     }
 
     /// Warps a camera pose of frame `time` by [`Deformation::pose_warp`].
@@ -308,9 +301,28 @@ impl Deformation {
     }
 }
 
+/// The matrix that carries a normal through a node's affine part R: `R⁻ᵀ` (R itself when it is
+/// singular).
+fn normal_map(r: &Matrix3<f64>) -> Matrix3<f64> {
+    r.try_inverse().map_or(*r, |m| m.transpose())
+}
+
+/// `normalise(Σ w_i M_i n)` over the influences, with `M_i = map(i)`; `n` when the sum vanishes
+/// (Sumner et al. 2007, Eq. 2).
+fn blend_normal(n: &Vector3<f64>, influences: &[(usize, f64)], map: impl Fn(usize) -> Matrix3<f64>) -> Vector3<f64> {
+    let mut out = Vector3::zeros();
+    for &(i, w) in influences {
+        out += w * (map(i) * n);
+    }
+    let len = out.norm();
+    if len > 1e-12 { out / len } else { *n }
+}
+
 /// [`Deformation::warp_surfel`] for a whole map ([`Deformation::warper`]).
 pub struct Warper<'a> {
     deformation: &'a Deformation,
+    /// Each node's normal map `R⁻ᵀ`, inverted once rather than per surfel.
+    normal_maps: Vec<Matrix3<f64>>,
     /// `moving_before[i]`: nodes before node i that are not the identity.
     moving_before: Vec<u32>,
     /// The nodes by cell, with a reach.
@@ -336,7 +348,7 @@ impl Warper<'_> {
         if infl.is_empty() {
             return;
         }
-        s.normal = d.warp_normal_with(&s.normal.cast(), &infl).cast();
+        s.normal = blend_normal(&s.normal.cast(), &infl, |i| self.normal_maps[i]).cast();
         s.position_m = d.warp_with(&p, &infl).cast();
     }
 

@@ -148,8 +148,7 @@ impl<'a> Problem<'a> {
 
     /// The normal-equation pattern of this problem and where every term lands in it.
     pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
-        let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera)
-            .map_err(|e| StageError::invalid_input(format!("nonrigid: normal-equation pattern: {e:?}")))?;
+        let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera);
         let pair_ids: Vec<Vec<usize>> = self.points.iter().map(|(_, b)| pair_ids(&pattern, b)).collect();
         let mut reg_slots = Vec::new();
         self.graph.visit(&Self::graph_weights(w), |_, row| {

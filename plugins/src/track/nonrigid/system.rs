@@ -7,7 +7,7 @@
 
 use std::collections::HashMap;
 
-use faer::sparse::{SparseColMat, Triplet};
+use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use nalgebra::Vector6;
 
 use crate::common::ed_graph::UNKNOWNS;
@@ -32,64 +32,55 @@ pub struct Pattern {
 
 impl Pattern {
     /// The pattern of `nodes` nodes coupled in the given pairs (any order; the diagonal is
-    /// always there), with a camera block when `camera`.
-    pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool) -> Result<Self, faer::sparse::CreationError> {
+    /// always there), with a camera block when `camera`. The compressed columns are laid out
+    /// directly from the sorted block list (rows ascending in every column, no triplet sort),
+    /// and every block entry's value slot is recorded on the way.
+    pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool) -> Self {
         let mut blocks: Vec<(usize, usize)> = (0..nodes).map(|i| (i, i)).chain(pairs.iter().map(|&(i, j)| (i.max(j), i.min(j)))).collect();
         blocks.sort_unstable_by_key(|&(i, j)| (j, i));
         blocks.dedup();
-        let n = UNKNOWNS * nodes + if camera { 6 } else { 0 };
-        let mut trips = Vec::with_capacity(blocks.len() * 144 + nodes * 72 + 36);
-        for &(i, j) in &blocks {
-            for a in 0..UNKNOWNS {
-                for b in 0..UNKNOWNS {
-                    if i > j || a >= b {
-                        trips.push(Triplet::new(UNKNOWNS * i + a, UNKNOWNS * j + b, 0.0));
-                    }
-                }
-            }
-        }
         let cam0 = UNKNOWNS * nodes;
-        if camera {
-            for j in 0..nodes {
-                for c in 0..6 {
-                    for b in 0..UNKNOWNS {
-                        trips.push(Triplet::new(cam0 + c, UNKNOWNS * j + b, 0.0));
+        let n = cam0 + if camera { 6 } else { 0 };
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::with_capacity(blocks.len() * 144 + if camera { nodes * 72 + 21 } else { 0 });
+        let mut block_slots = vec![usize::MAX; blocks.len() * 144];
+        let mut camera_slots = if camera { vec![usize::MAX; nodes * 72] } else { Vec::new() };
+        let mut camera_block = [usize::MAX; 36];
+        // Blocks sorted by (column node j, row node i ≥ j): each column's diagonal block first.
+        let mut start = 0;
+        for j in 0..nodes {
+            let end = start + blocks[start..].iter().take_while(|b| b.1 == j).count();
+            for b in 0..UNKNOWNS {
+                col_ptr.push(row_idx.len());
+                for (id, &(i, _)) in blocks.iter().enumerate().take(end).skip(start) {
+                    for a in (if i == j { b } else { 0 })..UNKNOWNS {
+                        block_slots[144 * id + UNKNOWNS * a + b] = row_idx.len();
+                        row_idx.push(UNKNOWNS * i + a);
+                    }
+                }
+                if camera {
+                    for c in 0..6 {
+                        camera_slots[72 * j + UNKNOWNS * c + b] = row_idx.len();
+                        row_idx.push(cam0 + c);
                     }
                 }
             }
-            for r in 0..6 {
-                for c in 0..=r {
-                    trips.push(Triplet::new(cam0 + r, cam0 + c, 0.0));
-                }
-            }
-        }
-        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trips)?;
-        let mut p = Self { a, nodes, camera, block_of: HashMap::new(), block_slots: Vec::new(), camera_slots: Vec::new(), camera_block: [usize::MAX; 36] };
-        for (id, &(i, j)) in blocks.iter().enumerate() {
-            p.block_of.insert((i, j), id);
-            for a in 0..UNKNOWNS {
-                for b in 0..UNKNOWNS {
-                    let s = if i > j || a >= b { p.slot(UNKNOWNS * i + a, UNKNOWNS * j + b).unwrap_or(usize::MAX) } else { usize::MAX };
-                    p.block_slots.push(s);
-                }
-            }
+            start = end;
         }
         if camera {
-            for j in 0..nodes {
-                for c in 0..6 {
-                    for b in 0..UNKNOWNS {
-                        let s = p.slot(cam0 + c, UNKNOWNS * j + b).unwrap_or(usize::MAX);
-                        p.camera_slots.push(s);
-                    }
-                }
-            }
-            for r in 0..6 {
-                for c in 0..=r {
-                    p.camera_block[6 * r + c] = p.slot(cam0 + r, cam0 + c).unwrap_or(usize::MAX);
+            for c in 0..6 {
+                col_ptr.push(row_idx.len());
+                for r in c..6 {
+                    camera_block[6 * r + c] = row_idx.len();
+                    row_idx.push(cam0 + r);
                 }
             }
         }
-        Ok(p)
+        col_ptr.push(row_idx.len());
+        let values = vec![0.0; row_idx.len()];
+        let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+        let block_of = blocks.iter().enumerate().map(|(id, &b)| (b, id)).collect();
+        Self { a: SparseColMat::new(symbolic, values), nodes, camera, block_of, block_slots, camera_slots, camera_block }
     }
 
     /// Unknowns in all.
