@@ -5,6 +5,7 @@
 //! An import is any `use` or path of a file that names another file's module: `crate::a::b`,
 //! `super::x` (also inside `{...}` groups) and, in a module with children, `use child::...`.
 //! `$crate::` in macro bodies names the crate for the macro's user and is no import.
+#![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -284,10 +285,10 @@ fn no_shipped_file_or_function_is_too_long() {
                     continue;
                 }
                 let close = format!("{indent}}}");
-                if let Some(j) = lines[i + 1..].iter().position(|m| m.starts_with(&close) && !m.starts_with(&format!("{indent} "))) {
-                    if j + 2 > MAX_FN_LINES {
-                        long.push(format!("{}:{} ({} lines)", p.display(), i + 1, j + 2));
-                    }
+                if let Some(j) = lines[i + 1..].iter().position(|m| m.starts_with(&close) && !m.starts_with(&format!("{indent} ")))
+                    && j + 2 > MAX_FN_LINES
+                {
+                    long.push(format!("{}:{} ({} lines)", p.display(), i + 1, j + 2));
                 }
             }
         });

@@ -208,6 +208,9 @@ fn coarse_start(grid: &Grid, data: &[CellData], light: &LightModel, photometry: 
     })
 }
 
+/// The last solved pyramid level: its grid, its cells' ζ (log depth), their data and the solve's residual.
+type SolvedLevel<'g> = (&'g Grid, Vec<f64>, Vec<CellData>, Vec<f64>);
+
 /// Gauss-Newton on each grid, coarsest first, each finer grid started from the coarser
 /// solution; `None` when no cell has data.
 fn solve_levels(
@@ -223,7 +226,7 @@ fn solve_levels(
     let smoothness = |grid: &Grid| p.smoothness * (cam.fx / grid.cell_px as f64).powi(2);
     let mut warm = previous.filter(|_| p.warm_start);
     let (mut factorisations, mut coarsest) = (0, None);
-    let mut solved: Option<(&Grid, Vec<f64>, Vec<CellData>, Vec<f64>)> = None;
+    let mut solved: Option<SolvedLevel<'_>> = None;
     for grid in levels {
         let data = cell_data(grid, irradiance, w);
         let mut zeta: Vec<f64> = match &solved {

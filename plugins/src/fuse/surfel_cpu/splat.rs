@@ -182,7 +182,7 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
     let (w, h) = (cam.width, cam.height);
     let t_cam_world = t_world_cam.inverse().cast::<f32>();
     let disc = |s: &Surfel| if include(s) { Disc::new(s, &t_cam_world, cam, depths) } else { None };
-    let winners = most_confident(surfels, &disc, cam, depths);
+    let winners = most_confident(surfels, disc, cam, depths);
     // The winner's normal and colour beside its intersection depth.
     let mut view = ModelView::empty(w, h, *t_world_cam);
     for (k, &v) in winners.iter().enumerate() {

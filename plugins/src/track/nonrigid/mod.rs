@@ -146,6 +146,7 @@ impl Tracker for Nonrigid {
 }
 
 /// What a fit did.
+#[allow(clippy::large_enum_variant, reason = "one per frame, matched once; boxing the warp buys nothing")]
 pub(crate) enum Fit {
     /// The warp and the pose.
     Solved {

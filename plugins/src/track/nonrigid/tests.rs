@@ -55,10 +55,10 @@ fn dense(pattern: &super::system::Pattern) -> nalgebra::DMatrix<f64> {
     let (sym, vals) = (pattern.a.symbolic(), pattern.a.val());
     let mut a = nalgebra::DMatrix::zeros(n, n);
     for c in 0..n {
-        for k in sym.col_ptr()[c]..sym.col_ptr()[c + 1] {
-            let r = sym.row_idx()[k];
-            a[(r, c)] = vals[k];
-            a[(c, r)] = vals[k];
+        let range = sym.col_ptr()[c]..sym.col_ptr()[c + 1];
+        for (&r, &v) in sym.row_idx()[range.clone()].iter().zip(&vals[range]) {
+            a[(r, c)] = v;
+            a[(c, r)] = v;
         }
     }
     a
