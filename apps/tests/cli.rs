@@ -66,7 +66,7 @@ fn run_on_a_tum_folder_writes_every_output_and_prints_the_metrics() {
     }
     let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 8);
-    assert_eq!(summary["pipeline"]["pipeline"]["tracker"], "icp-rgb");
+    assert_eq!(summary["pipeline"]["pipeline"]["tracker"], "nonrigid");
 }
 
 #[test]

@@ -33,6 +33,8 @@ fn the_map_learns_the_albedo_and_gives_it_back() {
             "plugins.near-light-sfs.albedo_source=map".to_string(),
             format!("plugins.near-light-sfs.albedo={assumed}"),
             "plugins.surfel-cpu.stable_confidence=2".to_string(),
+            // The rigid tracker by name (the default `nonrigid` is it exactly with estimated depth).
+            "pipeline.tracker=icp-rgb".to_string(),
             // Unlit tracking: on this untextured tube the relit photometric term, whose only
             // signal is the shading of the estimated surface, pulls the pose centimetres away
             // (a limit noted in docs/results/depth-noise.md); the round trip is what is tested.

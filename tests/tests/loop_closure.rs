@@ -23,6 +23,7 @@ fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Sum
         "pipeline.depth=sensor".to_string(),
         "pipeline.preprocess=[]".to_string(),
         format!("pipeline.loop_closer={closer}"),
+        "pipeline.tracker=icp-rgb".to_string(),
         "plugins.surfel-cpu.delta_t=15".to_string(),
         "plugins.icp-rgb.light_file=\"\"".to_string(),
         "plugins.sensor.default_sigma_m=1e-9".to_string(),

@@ -21,11 +21,9 @@ fn phantom(dir: &std::path::Path, deform_mm: f64) {
 }
 
 fn tracked(data: &std::path::Path, out: &std::path::Path, tracker: &str) -> Summary {
-    // Both rigid photometric terms unlit, as docs/results/nonrigid.md was measured: the test is
-    // of what the warp adds to the same rigid start (relit, icp-rgb's live surface error falls
-    // from 2.7 to 2.1 mm and nonrigid's lead there from 26 to 10 %).
-    let unlit = if tracker == "nonrigid" { "plugins.nonrigid.rigid.light_file=\"\"" } else { "plugins.icp-rgb.light_file=\"\"" };
-    let sets = ["pipeline.depth=sensor".to_owned(), "pipeline.preprocess=[]".to_owned(), format!("pipeline.tracker={tracker}"), unlit.to_owned()];
+    // The default pipeline with sensor depth (its preprocessors remove the highlights, which
+    // move with the light and read as motion), as docs/results/nonrigid.md's headline table.
+    let sets = ["pipeline.depth=sensor".to_owned(), format!("pipeline.tracker={tracker}")];
     let cfg = Config::load(None, &sets).unwrap();
     let ds = Dataset::open(data, &cfg.input, None).unwrap();
     let mut p = Pipeline::build(&cfg, "test", &test_registry(), &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
@@ -51,10 +49,11 @@ fn on_a_moving_wall_the_nonrigid_tracker_beats_the_rigid_one_and_on_a_still_wall
     let warped = tracked(&moving, &tmp.path().join("warped"), "nonrigid");
     let (ate_r, ate_w) = (metric(&rigid, "ate_rmse_m"), metric(&warped, "ate_rmse_m"));
     let (live_r, live_w) = (metric(&rigid, "live_surface_rmse_m"), metric(&warped, "live_surface_rmse_m"));
-    // Measured at 5.1 → 3.7 mm ATE and 2.7 → 2.0 mm live surface RMSE (docs/results/nonrigid.md);
-    // a tracker that did not follow the wall would sit at the rigid figures.
-    assert!(ate_w < 0.85 * ate_r, "ATE {:.3} mm against icp-rgb's {:.3} mm", ate_w * 1e3, ate_r * 1e3);
-    assert!(live_w < 0.85 * live_r, "live surface {:.3} mm against icp-rgb's {:.3} mm", live_w * 1e3, live_r * 1e3);
+    // Measured at 7.90 → 3.03 mm ATE and 2.68 → 1.68 mm live surface RMSE (the issue asks for
+    // 2× on both; the live surface is not there yet, docs/results/nonrigid.md); a tracker that
+    // did not follow the wall would sit at the rigid figures.
+    assert!(ate_w < 0.5 * ate_r, "ATE {:.3} mm against icp-rgb's {:.3} mm", ate_w * 1e3, ate_r * 1e3);
+    assert!(live_w < 0.75 * live_r, "live surface {:.3} mm against icp-rgb's {:.3} mm", live_w * 1e3, live_r * 1e3);
     assert_eq!(warped.frames_lost, 0);
 
     // frames.csv carries the warp and its solver time once the map is predicted.

@@ -9,6 +9,8 @@ pub mod live;
 pub mod report;
 pub mod rpe;
 pub mod surface;
+#[cfg(test)]
+mod testing;
 pub mod warp;
 
 use nalgebra::{Point3, UnitQuaternion};

@@ -58,31 +58,12 @@ pub fn live_surface_error(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use capsule_slam_framework::map::Surfel;
-    use nalgebra::{Matrix3, Point3, Vector3};
+    use crate::testing::identity;
+    use nalgebra::Vector3;
 
-    /// A plane z = 0.05 sampled every 0.5 mm over 2 cm × 2 cm, last seen at frame `t`.
+    /// The test plane (2 cm × 2 cm, created at frame 0) last seen at frame `t`.
     fn plane(z: f32, t: u32) -> SurfelSet {
-        let surfels = (0..40)
-            .flat_map(|i| (0..40).map(move |j| (i, j)))
-            .map(|(i, j)| Surfel {
-                position_m: Point3::new(-0.01 + 0.0005 * i as f32, -0.01 + 0.0005 * j as f32, z),
-                normal: Vector3::new(0.0, 0.0, -1.0),
-                colour: [128; 3],
-                confidence: 10.0,
-                radius_m: 0.0003,
-                t0: 0,
-                t,
-                albedo: 0.0,
-                sigma_m: 0.0,
-                warp_m: Vector3::zeros(),
-            })
-            .collect();
-        SurfelSet { surfels }
-    }
-
-    fn identity() -> Similarity {
-        Similarity { rotation: Matrix3::identity(), translation: Vector3::zeros(), scale: 1.0 }
+        crate::testing::plane(z, 40, 0, t)
     }
 
     #[test]

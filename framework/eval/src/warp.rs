@@ -152,31 +152,13 @@ pub fn warp_error(map: &SurfelSet, alignment: &Similarity, wall: &WallMotion, tr
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::identity;
     use capsule_slam_framework::map::Surfel;
     use nalgebra::Matrix3;
 
-    /// A plane z = `z` m sampled every 0.5 mm over 1 cm × 1 cm, seen from t0 to t.
+    /// The test plane (1 cm × 1 cm), seen from t0 to t.
     fn plane(z: f32, t0: u32, t: u32) -> SurfelSet {
-        let surfels = (0..20)
-            .flat_map(|i| (0..20).map(move |j| (i, j)))
-            .map(|(i, j)| Surfel {
-                position_m: Point3::new(-0.005 + 0.0005 * i as f32, -0.005 + 0.0005 * j as f32, z),
-                normal: Vector3::new(0.0, 0.0, -1.0),
-                colour: [128; 3],
-                confidence: 10.0,
-                radius_m: 0.0003,
-                t0,
-                t,
-                albedo: 0.0,
-                sigma_m: 0.0,
-                warp_m: Vector3::zeros(),
-            })
-            .collect();
-        SurfelSet { surfels }
-    }
-
-    fn identity() -> Similarity {
-        Similarity { rotation: Matrix3::identity(), translation: Vector3::zeros(), scale: 1.0 }
+        crate::testing::plane(z, 20, t0, t)
     }
 
     /// A wall that moves 2 mm along z between frames 0 and 20 (sampled at 0, 10, 20).

@@ -62,14 +62,15 @@ fn none() -> String {
 impl Default for PipelineConfig {
     /// The default pipeline is the capsule's, monocular, as in the paper: highlights removed
     /// (`reflection`), the lens and LED fall-off divided out (`vignetting`), depth by
-    /// `near-light-sfs` from the image and the input's `light.toml`, `icp-rgb` tracking and the
-    /// CPU surfel fuser. For an RGB-D input set `depth = "sensor"`. Where a stage has no real
+    /// `near-light-sfs` from the image and the input's `light.toml`, `nonrigid` tracking (a rigid
+    /// `icp-rgb` start, then a warp of the map where the wall moves, which it does only with
+    /// measured depth) and the CPU surfel fuser. For an RGB-D input set `depth = "sensor"`. Where a stage has no real
     /// plugin in this build, the app substitutes the oracle and says so.
     fn default() -> Self {
         Self {
             preprocess: vec!["reflection".into(), "vignetting".into()],
             depth: "near-light-sfs".into(),
-            tracker: "icp-rgb".into(),
+            tracker: "nonrigid".into(),
             fuser: "surfel-cpu".into(),
             loop_closer: none(),
         }

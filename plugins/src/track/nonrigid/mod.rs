@@ -14,19 +14,21 @@
 //!    smoothness terms (shared with the `deformation` loop closer), a rest-shape prior that
 //!    gives motion common to every node to the camera, a per-frame step prior and a camera prior
 //!    toward the rigid start; faer's sparse Cholesky, its analysis kept while the pattern holds;
-//! 4. model selection: the rigid motion common to the nodes is factored out of the warp (the
-//!    camera's to explain, OpenCV dynafu's `factorCommon`), and the warp is kept only when it
-//!    lowers the point-to-plane RMS by `min_rms_gain` and its χ² by more than `min_evidence` per
-//!    unknown (Akaike): a still wall is left still (counter `nonrigid_still`);
+//! 4. model selection: optionally the rigid motion common to the nodes is factored out of the
+//!    warp (`factor_common`, OpenCV dynafu's `factorCommon`), and the warp is kept only when the
+//!    point-to-plane RMS falls by `min_rms_gain` on average over the last `gain_window_frames`
+//!    solves and its χ² by more than `min_evidence` per unknown (Akaike): a still wall is left
+//!    still (counter `nonrigid_still`);
 //! 5. a fallback to the rigid pose, without a warp, when too few model points find the live
 //!    wall, the solver fails, a node would jump or the camera would leave the rigid start (each
 //!    named in a warning, counter `nonrigid_fallback`).
 //!
 //! With depth estimated from the image the warp is off (`warp_estimated_depth`): the tracker is
-//! then `icp-rgb` exactly. `camera = "joint"` (the camera an unknown of the warp solve, held by
-//! a prior toward the rigid start and the nodes' rest-shape prior; `apps/configs/deforming-joint.toml`)
-//! tracks deforming walls better and rigid walls worse than the default `fixed`
-//! (`docs/results/nonrigid.md`, "The camera solved with the warp").
+//! then `icp-rgb` exactly. By default the camera is an unknown of the warp solve (`camera =
+//! "joint"`, held by a prior toward the rigid start and the nodes' rest-shape prior) and the
+//! model selection judges the mean gain of the last `gain_window_frames` solves, so a still
+//! wall keeps no warp and tracks as `icp-rgb` (`docs/results/nonrigid.md`, "With the default
+//! preprocessors"); `camera = "fixed"` is SurfelWarp's nodes-only solve.
 //!
 //! The photometric reference (the previous frame's intensity at each model point) is relit to
 //! the rigid start's view with the rigid start's light model (`relight`, `points::relight`).
@@ -67,6 +69,8 @@ pub struct Nonrigid {
     rigid: IcpRgb,
     nodes: Nodes,
     cache: Cache,
+    /// The point-to-plane gains of the last `gain_window_frames` solves.
+    recent_gains: std::collections::VecDeque<f64>,
 }
 
 impl Plugin for Nonrigid {
@@ -86,7 +90,7 @@ impl Nonrigid {
     /// A tracker with no history.
     pub fn new(params: NonrigidParams) -> Result<Self, StageError> {
         params.check()?;
-        Ok(Self { nodes: Nodes::new(params.reach_m), rigid: IcpRgb::new(params.rigid.clone()), params, cache: Cache::default() })
+        Ok(Self { nodes: Nodes::new(params.reach_m), rigid: IcpRgb::new(params.rigid.clone()), params, cache: Cache::default(), recent_gains: Default::default() })
     }
 }
 
@@ -317,7 +321,8 @@ impl Nonrigid {
         let (r0, r1) = (outcome.icp_rms_first_m, outcome.icp_rms_m);
         let gain_chi2 = outcome.inliers as f64 * ((r0 * r0) / (r1 * r1).max(1e-30) - 1.0);
         let gains = Gains::of(&outcome);
-        if gains.icp < p.min_rms_gain || gain_chi2 < p.min_evidence * (12 * solve_ids.len()) as f64 {
+        let judged = windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames);
+        if judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (12 * solve_ids.len()) as f64 {
             return Ok(Fit::Still(gains));
         }
         for (s, &i) in solve_ids.iter().enumerate() {
@@ -328,6 +333,19 @@ impl Nonrigid {
         self.nodes.rebin();
         Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome })
     }
+}
+
+/// The gain `min_rms_gain` is tested on: the mean of the last `window` finite gains, `gain`
+/// included (`gain` itself when it is not finite or the window is one frame).
+fn windowed_gain(recent: &mut std::collections::VecDeque<f64>, gain: f64, window: u32) -> f64 {
+    if !gain.is_finite() {
+        return gain;
+    }
+    recent.push_back(gain);
+    while recent.len() > window.max(1) as usize {
+        recent.pop_front();
+    }
+    recent.iter().sum::<f64>() / recent.len() as f64
 }
 
 /// Removes from every node the rigid motion that best explains the nodes' displacements

@@ -21,6 +21,10 @@ fn tracker(camera: CameraMode) -> Nonrigid {
         sigma_step_m: 0.0,
         sigma_step_rot: 0.0,
         factor_common: false,
+        // The warp is to be recovered from the depth: the photometric term at the paper's
+        // weight, and no prior on sliding (the test's displacement is along z, not the normal).
+        w_rgb: 0.1,
+        sigma_slide_m: 0.0,
         ..Default::default()
     };
     Nonrigid::new(params).unwrap()
@@ -167,7 +171,8 @@ fn eigenvalues(priors: bool) -> Vec<f64> {
     let (mut t, points, live) = setup(CameraMode::Joint, 0.0);
     t.params.w_rgb = 0.0;
     if !priors {
-        (t.params.sigma_rest_m, t.params.sigma_step_m, t.params.sigma_step_rot, t.params.sigma_camera_m, t.params.sigma_camera_rad) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        (t.params.sigma_rest_m, t.params.sigma_step_m, t.params.sigma_step_rot, t.params.sigma_slide_m, t.params.sigma_camera_m, t.params.sigma_camera_rad) =
+            (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     }
     let w = t.params.weights();
     let (problem, _, _) = t.problem(&points).unwrap();
@@ -245,3 +250,28 @@ fn a_points_weight_follows_the_live_depths_sigma_and_its_correlation() {
         assert!(rows > 100, "{rows} point-to-plane rows");
     }
 }
+
+#[test]
+fn the_gain_is_judged_over_a_window_of_solves() {
+    let mut recent = std::collections::VecDeque::new();
+    // One frame: the gain itself, to the bit (the default keeps the per-frame test).
+    assert_eq!(windowed_gain(&mut recent, 0.123_456_789, 1), 0.123_456_789);
+    recent.clear();
+    // A still wall's occasional gain is averaged down by its neighbours ...
+    for g in [0.0, -0.02, 0.01] {
+        windowed_gain(&mut recent, g, 4);
+    }
+    let judged = windowed_gain(&mut recent, 0.15, 4);
+    assert!((judged - 0.035).abs() < 1e-12, "{judged}");
+    // ... a moving wall's sustained gain is not, and the oldest gains leave the window.
+    for _ in 0..3 {
+        windowed_gain(&mut recent, 0.12, 4);
+    }
+    let judged = windowed_gain(&mut recent, 0.12, 4);
+    assert!((judged - 0.12).abs() < 1e-12, "{judged}");
+    assert_eq!(recent.len(), 4);
+    // A gain that is not finite (a term without residuals) is passed on and not remembered.
+    assert!(windowed_gain(&mut recent, f64::NAN, 4).is_nan());
+    assert_eq!(recent.len(), 4);
+}
+
