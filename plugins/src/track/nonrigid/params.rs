@@ -24,8 +24,8 @@ capsule_slam_framework::plugin_params! {
         /// The rigid start: every `icp-rgb` parameter, as a table `[plugins.nonrigid.rigid]`.
         pub rigid: IcpRgbParams = IcpRgbParams::default(); unit = "-";
         /// `joint` (camera and nodes, held near the rigid start by the camera prior: the texture
-        /// sees motion the geometry hides) or `fixed` (nodes only, SurfelWarp). Joint: 2–9× lower
-        /// ATE on the deforming phantoms (`docs/results/nonrigid.md`).
+        /// sees motion the geometry hides) or `fixed` (nodes only, SurfelWarp). Joint: 1.4–3× lower
+        /// ATE than fixed on the deforming phantoms (`docs/results/nonrigid.md`).
         pub camera: CameraMode = CameraMode::Joint; unit = "-";
         /// Remove from the warp the rigid motion common to its nodes (OpenCV dynafu's
         /// `factorCommon`): the camera explains it, and the map cannot drift with a camera error.
@@ -113,8 +113,8 @@ capsule_slam_framework::plugin_params! {
         /// preprocessors: a still wall's gain is 0 at the median and < 0.07 in 90 % of the
         /// frames, a moving wall's 0.09–0.15 at the median.
         pub min_rms_gain: f64 = 0.06; unit = "-"; range = 0.0..=1.0;
-        /// Test `min_rms_gain` on the mean gain of the last this many frames that solved a warp
-        /// (this one included): a moving wall keeps the gain up frame after frame, a still one
+        /// Test `min_rms_gain` on the mean gain of the last this many solves that reached the
+        /// model selection (this one included): a moving wall keeps the gain up frame after frame, a still one
         /// gives a gain now and then from the map's own errors (`docs/results/nonrigid.md`).
         /// 1: this frame alone; 20 keeps every warp off the seven rigid phantoms.
         pub gain_window_frames: u32 = 20; unit = "frames"; range = 1.0..=1000.0;
