@@ -4,9 +4,9 @@
 use std::collections::BTreeMap;
 
 use super::live::live_surface_error;
-use super::warp::{WallMotion, warp_error};
 use super::rpe::{Delta, rpe};
 use super::surface::{SurfaceOptions, surface_error};
+use super::warp::{WallMotion, warp_error};
 use super::{align_trajectory, ate, path_length_m};
 use capsule_slam_framework::geometry::{Iso3, StampedPose};
 use capsule_slam_framework::map::SurfelSet;
@@ -31,7 +31,14 @@ pub struct EvalOptions {
 
 impl Default for EvalOptions {
     fn default() -> Self {
-        Self { tolerance_s: 0.02, sim3: false, rpe_delta: Delta::Frames(1), surface: SurfaceOptions::default(), live_window_frames: 30, warp_max_gap_frames: 30 }
+        Self {
+            tolerance_s: 0.02,
+            sim3: false,
+            rpe_delta: Delta::Frames(1),
+            surface: SurfaceOptions::default(),
+            live_window_frames: 30,
+            warp_max_gap_frames: 30,
+        }
     }
 }
 

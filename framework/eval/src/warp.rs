@@ -122,7 +122,14 @@ impl WallMotion {
 /// The warp error of the surfels of `map` seen at `last_frame`, moved by `alignment`
 /// (estimated world → true world), against `wall`, whose surface at `last_frame` is
 /// `truth_now`. `None` when no surfel is measured.
-pub fn warp_error(map: &SurfelSet, alignment: &Similarity, wall: &WallMotion, truth_now: &SurfelSet, last_frame: u32, max_gap_frames: u32) -> Option<WarpError> {
+pub fn warp_error(
+    map: &SurfelSet,
+    alignment: &Similarity,
+    wall: &WallMotion,
+    truth_now: &SurfelSet,
+    last_frame: u32,
+    max_gap_frames: u32,
+) -> Option<WarpError> {
     let truth = Truth::new(truth_now)?;
     let rotate = alignment.scale * alignment.rotation;
     let (mut err2, mut nrm2, mut true2, mut est2, mut points, mut skipped) = (0.0, 0.0, 0.0, 0.0, 0usize, 0usize);
@@ -201,7 +208,15 @@ mod tests {
         let rx = Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0);
         let align = Similarity { rotation: rx, translation: Vector3::zeros(), scale: 1.0 };
         let mut map = SurfelSet {
-            surfels: plane(0.052, 0, 20).surfels.into_iter().map(|s| Surfel { position_m: Point3::from(rx.transpose() * s.position_m.coords.cast::<f64>()).cast(), warp_m: (rx.transpose() * Vector3::new(0.0, 0.0, 0.002)).cast(), ..s }).collect(),
+            surfels: plane(0.052, 0, 20)
+                .surfels
+                .into_iter()
+                .map(|s| Surfel {
+                    position_m: Point3::from(rx.transpose() * s.position_m.coords.cast::<f64>()).cast(),
+                    warp_m: (rx.transpose() * Vector3::new(0.0, 0.0, 0.002)).cast(),
+                    ..s
+                })
+                .collect(),
         };
         map.surfels.extend(plane(0.06, 0, 12).surfels);
         let e = warp_error(&map, &align, &wall, &c, 20, 30).unwrap();

@@ -90,7 +90,13 @@ impl Nonrigid {
     /// A tracker with no history.
     pub fn new(params: NonrigidParams) -> Result<Self, StageError> {
         params.check()?;
-        Ok(Self { nodes: Nodes::new(params.reach_m), rigid: IcpRgb::new(params.rigid.clone()), params, cache: Cache::default(), recent_gains: Default::default() })
+        Ok(Self {
+            nodes: Nodes::new(params.reach_m),
+            rigid: IcpRgb::new(params.rigid.clone()),
+            params,
+            cache: Cache::default(),
+            recent_gains: Default::default(),
+        })
     }
 }
 

@@ -274,4 +274,3 @@ fn the_gain_is_judged_over_a_window_of_solves() {
     assert!(windowed_gain(&mut recent, f64::NAN, 4).is_nan());
     assert_eq!(recent.len(), 4);
 }
-
