@@ -18,7 +18,8 @@
 //!    warp (`factor_common`, OpenCV dynafu's `factorCommon`), and the warp is kept only when the
 //!    point-to-plane RMS falls by `min_rms_gain` on average over the last `gain_window_frames`
 //!    solves and its χ² by more than `min_evidence` per unknown (Akaike): a still wall is left
-//!    still (counter `nonrigid_still`);
+//!    still (counter `nonrigid_still`); while it is clearly still, the warp is solved on every
+//!    `still_probe_every_frames`-th frame only (counter `nonrigid_probe_skipped`);
 //! 5. a fallback to the rigid pose, without a warp, when too few model points find the live
 //!    wall, the solver fails, a node would jump or the camera would leave the rigid start (each
 //!    named in a warning, counter `nonrigid_fallback`).
@@ -61,6 +62,7 @@ use crate::track::icp_rgb::frames::Level;
 
 use nodes::Nodes;
 use points::ModelPoint;
+use rayon::prelude::*;
 use solve::{Cache, Problem};
 
 /// The non-rigid tracker.
@@ -71,6 +73,31 @@ pub struct Nonrigid {
     cache: Cache,
     /// The point-to-plane gains of the last `gain_window_frames` solves.
     recent_gains: std::collections::VecDeque<f64>,
+    /// The still wall's probe schedule (`still_probe_every_frames`).
+    probe: Probe,
+}
+
+/// While the wall is clearly still, the warp is solved on every n-th frame only.
+#[derive(Debug, Clone, Copy, Default)]
+struct Probe {
+    /// Whether the wall is judged clearly still.
+    still: bool,
+    /// Consecutive still verdicts.
+    streak: u32,
+    /// Frames since the last solve while still.
+    skipped: u32,
+}
+
+impl Probe {
+    /// Whether this frame skips the warp solve (and counts it).
+    fn skips(&mut self, every: u32) -> bool {
+        if !self.still || self.skipped + 1 >= every {
+            self.skipped = 0;
+            return false;
+        }
+        self.skipped += 1;
+        true
+    }
 }
 
 impl Plugin for Nonrigid {
@@ -96,6 +123,7 @@ impl Nonrigid {
             params,
             cache: Cache::default(),
             recent_gains: Default::default(),
+            probe: Probe::default(),
         })
     }
 }
@@ -104,6 +132,10 @@ impl Tracker for Nonrigid {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
         let live = self.rigid.live_pyramid(frame, ctx);
         let warps = frame.depth_source == DepthSource::Measured || self.params.warp_estimated_depth;
+        let warps = warps && model.is_some() && !self.probe.skips(self.params.still_probe_every_frames);
+        if self.probe.skipped > 0 {
+            ctx.count("nonrigid_probe_skipped", 1.0);
+        }
         // The model points read the previous frame's intensity, which registering replaces.
         let clock = std::time::Instant::now();
         let points = match (model, warps) {
@@ -174,8 +206,9 @@ pub(crate) enum Fit {
     /// Why the rigid pose stands.
     Fallback(String),
     /// The warp explained too little of the residual (the wall did not move measurably): the
-    /// rigid pose stands, no warp, and this is no failure.
-    Still(Gains),
+    /// rigid pose stands, no warp, and this is no failure. The gains, and the mean
+    /// point-to-plane gain of the window they were judged on.
+    Still(Gains, f64),
 }
 
 /// The shares by which a solve lowered the RMS residuals from the rigid start (not finite
@@ -208,22 +241,31 @@ impl Nonrigid {
     fn solve(&mut self, points: &[ModelPoint], level: &Level, rigid: &TrackResult, ctx: &mut Context) -> Result<Option<TrackResult>, StageError> {
         match self.fit(points, level, &rigid.t_world_cam)? {
             Fit::Fallback(why) => {
+                self.probe = Probe::default();
                 ctx.warn(format!("rigid pose kept, no warp: {why}"));
                 ctx.count("nonrigid_fallback", 1.0);
                 Ok(None)
             }
-            Fit::Still(gains) => {
+            Fit::Still(gains, judged) => {
+                let p = &self.params;
+                self.probe.streak += 1;
+                // Clearly still: a window of still verdicts, their mean gain and this one's below
+                // a quarter of the threshold (a probe that is not clearly still ends the probing).
+                let clear = 0.25 * p.min_rms_gain;
+                self.probe.still = self.probe.streak >= p.gain_window_frames && judged < clear && gains.icp < clear;
                 ctx.count("nonrigid_still", 1.0);
                 gains.count(ctx);
                 Ok(None)
             }
             Fit::Solved { t_world_cam, warp, outcome, nodes, points } => {
+                self.probe = Probe::default();
                 ctx.count("nonrigid_nodes", nodes as f64);
                 Gains::of(&outcome).count(ctx);
                 ctx.count("nonrigid_points", points as f64);
                 ctx.count("nonrigid_iterations", outcome.iterations as f64);
                 ctx.count("nonrigid_analyses", outcome.analyses as f64);
                 ctx.count("ms_nonrigid_setup", outcome.ms_setup);
+                ctx.count("ms_nonrigid_analyse", outcome.ms_analyse);
                 ctx.count("ms_nonrigid_assemble", outcome.ms_assemble);
                 ctx.count("ms_nonrigid_factor", outcome.ms_factor);
                 Ok(Some(TrackResult {
@@ -248,9 +290,11 @@ impl Nonrigid {
         // Every node as a deformation (times 0, so the order is kept) to bind points.
         let all =
             Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
+        // Each point's nodes within reach, found once for both bindings below.
+        let near: Vec<Vec<usize>> = points.par_iter().map(|q| self.nodes.within(&q.x_world_m, reach)).collect();
         let mut used = vec![0usize; all.nodes.len()];
-        for q in points {
-            for (i, _) in all.influences_among(&q.x_world_m, self.nodes.within(&q.x_world_m, reach).into_iter()) {
+        for (q, near) in points.iter().zip(&near) {
+            for (i, _) in all.influences_among(&q.x_world_m, near.iter().copied()) {
                 used[i] += 1;
             }
         }
@@ -272,9 +316,10 @@ impl Nonrigid {
             nb.retain(|&n| (nodes[n].position_m - g).norm() <= p.max_edge_m && normals[j].dot(&normals[n]) >= cos_edge);
         }
         let bound: Vec<(&ModelPoint, Vec<(usize, f64)>)> = points
-            .iter()
-            .filter_map(|q| {
-                let near = self.nodes.within(&q.x_world_m, reach).into_iter().filter_map(|i| (index[i] != usize::MAX).then_some(index[i]));
+            .par_iter()
+            .zip(&near)
+            .filter_map(|(q, near)| {
+                let near = near.iter().filter_map(|&i| (index[i] != usize::MAX).then_some(index[i]));
                 let b = graph.deformation.influences_among(&q.x_world_m, near);
                 (!b.is_empty()).then_some((q, b))
             })
@@ -329,7 +374,7 @@ impl Nonrigid {
         let gains = Gains::of(&outcome);
         let judged = windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames);
         if judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (12 * solve_ids.len()) as f64 {
-            return Ok(Fit::Still(gains));
+            return Ok(Fit::Still(gains, judged));
         }
         for (s, &i) in solve_ids.iter().enumerate() {
             let (node, dn) = (&mut self.nodes.nodes[i], &d.nodes[s]);

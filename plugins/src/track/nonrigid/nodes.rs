@@ -6,9 +6,9 @@
 //! had when it was created (its reference: the rest-shape prior pulls it back there, after
 //! DefSLAM's `EdgesReference`) and its live position, which each frame's warp moves.
 
-use std::collections::HashMap;
-
 use nalgebra::{Point3, Vector3};
+
+use rustc_hash::FxHashMap as HashMap;
 
 use super::points::ModelPoint;
 
@@ -35,7 +35,7 @@ pub struct Nodes {
 impl Nodes {
     /// No nodes; the grid's cells are `cell_m` wide.
     pub fn new(cell_m: f64) -> Self {
-        Self { nodes: Vec::new(), cells: HashMap::new(), cell_m }
+        Self { nodes: Vec::new(), cells: HashMap::default(), cell_m }
     }
 
     fn cell(&self, p: &Point3<f64>) -> [i64; 3] {
@@ -83,7 +83,7 @@ impl Nodes {
 
     /// Re-bins every node after positions changed.
     pub fn rebin(&mut self) {
-        let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+        let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::default();
         for (i, n) in self.nodes.iter().enumerate() {
             cells.entry(self.cell(&n.position_m)).or_default().push(i);
         }

@@ -118,6 +118,12 @@ capsule_slam_framework::plugin_params! {
         /// gives a gain now and then from the map's own errors (`docs/results/nonrigid.md`).
         /// 1: this frame alone; 20 keeps every warp off the seven rigid phantoms.
         pub gain_window_frames: u32 = 20; unit = "frames"; range = 1.0..=1000.0;
+        /// While the wall is clearly still (the last `gain_window_frames` solves all kept no warp
+        /// and their mean gain is below a quarter of `min_rms_gain`), solve the warp on every this-many-th
+        /// frame only: the frames between are `icp-rgb`'s (what a still verdict gives anyway),
+        /// without the warp solve's cost. A probe whose own gain reaches `min_rms_gain`, or any
+        /// kept warp or fallback, ends it. 1: solve every frame.
+        pub still_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
         /// Most nodes (SurfelWarp: 4096).
         pub max_nodes: u32 = 4096; unit = "-"; range = 1.0..=1.0e6;
         /// Warp also with depth estimated from the image (shape from shading): its view-dependent

@@ -24,6 +24,9 @@ use super::energy::{data_camera_row, data_residual, image_gradient_cam, node_row
 use super::points::{ModelPoint, look};
 use super::system::{Accumulator, Factor, Pattern, Row};
 
+/// The most nodes one point binds (the range of `k`).
+const MAX_BINDING: usize = 8;
+
 /// The weights and gates of the energy.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Weights {
@@ -102,8 +105,10 @@ pub struct Outcome {
     pub rgb_rms_first: f64,
     /// Symbolic analyses run (0: the previous one was reused).
     pub analyses: usize,
-    /// Time building the pattern and the bindings' slots, ms.
+    /// Time building the pattern and the bindings' slots, and analysing it, ms.
     pub ms_setup: f64,
+    /// Of `ms_setup`, the symbolic analysis (0 when the previous one was reused), ms.
+    pub ms_analyse: f64,
     /// Time assembling the normal equations, ms (all iterations).
     pub ms_assemble: f64,
     /// Time factorising and solving, ms (all iterations).
@@ -194,6 +199,7 @@ impl<'a> Problem<'a> {
         let nodes = self.graph.deformation.nodes.len();
         let clock = std::time::Instant::now();
         let mut layout = self.layout(w)?;
+        let ms_layout = ms(clock);
         let (mut factor, analyses) = match cache.kept.take() {
             Some((old, f)) if old.same_structure(&layout.pattern) => (f, 0),
             _ => (Factor::new(&layout.pattern).map_err(solver_error)?, 1),
@@ -209,6 +215,7 @@ impl<'a> Problem<'a> {
             rgb_rms: f64::INFINITY,
             rgb_rms_first: f64::INFINITY,
             analyses,
+            ms_analyse: ms(clock) - ms_layout,
             ms_setup: ms(clock),
             ms_assemble: 0.0,
             ms_factor: 0.0,
@@ -296,7 +303,10 @@ impl<'a> Problem<'a> {
         let d = &self.graph.deformation;
         let warped = d.warp_with(&p.x_world_m, binding);
         let Some(live) = look(level, t, &warped) else { return [None; 2] };
-        let mut rows: Vec<(usize, [f64; 12])> = Vec::with_capacity(binding.len());
+        // The node rows on the stack (`k` ≤ 8 by its range; a longer binding is cut, as the
+        // slots of `pairs` stop there too).
+        let mut rows = [(0usize, [0.0; 12]); MAX_BINDING];
+        let binding = &binding[..binding.len().min(MAX_BINDING)];
         let mut icp_r2 = None;
         // σ of the residual (floor, live depth and model) for the gate and the Huber threshold;
         // the weight counts a correlated patch of live points once (`icp-rgb`'s `gn.rs`).
@@ -306,8 +316,10 @@ impl<'a> Problem<'a> {
         let close = (warped - live.p_world_m).norm() <= w.gate_m.max(w.gate_sigmas * sigma) && p.n_world.dot(&live.n_world) >= w.cos_gate;
         if close {
             let r = data_residual(&p.n_world, &warped, &live.p_world_m);
-            rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk))));
-            let row = Row { nodes: &rows, pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
+            for (slot, &(k, wk)) in rows.iter_mut().zip(binding) {
+                *slot = (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk));
+            }
+            let row = Row { nodes: &rows[..binding.len()], pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
             sink(&row, r, huber(r / sigma, w.huber_k) / sigma_w2);
             icp_r2 = Some(r * r);
         }
@@ -318,10 +330,11 @@ impl<'a> Problem<'a> {
         {
             let a = image_gradient_cam(&live.q_cam_m, (gx, gy), level.cam.fx, level.cam.fy);
             let m = photo_world_gradient(t.rotation.to_rotation_matrix().matrix(), &a);
-            rows.clear();
-            rows.extend(binding.iter().map(|&(k, wk)| (k, node_row(&m, &(p.x_world_m - d.nodes[k].position_m), wk))));
+            for (slot, &(k, wk)) in rows.iter_mut().zip(binding) {
+                *slot = (k, node_row(&m, &(p.x_world_m - d.nodes[k].position_m), wk));
+            }
             let r = i - reference;
-            let row = Row { nodes: &rows, pairs, camera: photo_camera_row(&m, &warped) };
+            let row = Row { nodes: &rows[..binding.len()], pairs, camera: photo_camera_row(&m, &warped) };
             sink(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
             return [icp_r2, Some(r * r)];
         }

@@ -5,8 +5,6 @@
 //! found once per pattern. The sparse Cholesky's symbolic analysis is kept while the pattern
 //! (nodes, edges and the node pairs the pixels couple) stays the same.
 
-use std::collections::HashMap;
-
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use nalgebra::Vector6;
 
@@ -19,8 +17,10 @@ pub struct Pattern {
     pub a: SparseColMat<usize, f64>,
     nodes: usize,
     camera: bool,
-    /// Block id of each node pair (i ≥ j).
-    block_of: HashMap<(usize, usize), usize>,
+    /// The node pairs (i ≥ j), sorted by (j, i): a block's id is its index.
+    blocks: Vec<(usize, usize)>,
+    /// Where column node j's blocks start in `blocks` (`nodes + 1` entries).
+    column_start: Vec<usize>,
     /// Value slot of each entry of each block (`12 a + b`: row a of node i, column b of node
     /// j); `usize::MAX` for the upper half of a diagonal block.
     block_slots: Vec<usize>,
@@ -48,7 +48,9 @@ impl Pattern {
         let mut camera_block = [usize::MAX; 36];
         // Blocks sorted by (column node j, row node i ≥ j): each column's diagonal block first.
         let mut start = 0;
+        let mut column_start = Vec::with_capacity(nodes + 1);
         for j in 0..nodes {
+            column_start.push(start);
             let end = start + blocks[start..].iter().take_while(|b| b.1 == j).count();
             for b in 0..UNKNOWNS {
                 col_ptr.push(row_idx.len());
@@ -67,6 +69,7 @@ impl Pattern {
             }
             start = end;
         }
+        column_start.push(start);
         if camera {
             for c in 0..6 {
                 col_ptr.push(row_idx.len());
@@ -79,8 +82,7 @@ impl Pattern {
         col_ptr.push(row_idx.len());
         let values = vec![0.0; row_idx.len()];
         let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
-        let block_of = blocks.iter().enumerate().map(|(id, &b)| (b, id)).collect();
-        Self { a: SparseColMat::new(symbolic, values), nodes, camera, block_of, block_slots, camera_slots, camera_block }
+        Self { a: SparseColMat::new(symbolic, values), nodes, camera, blocks, column_start, block_slots, camera_slots, camera_block }
     }
 
     /// Unknowns in all.
@@ -90,7 +92,11 @@ impl Pattern {
 
     /// The block id of the node pair (either order), if it is in the pattern.
     pub fn block(&self, i: usize, j: usize) -> Option<usize> {
-        self.block_of.get(&(i.max(j), i.min(j))).copied()
+        let (i, j) = (i.max(j), i.min(j));
+        let (lo, hi) = (*self.column_start.get(j)?, *self.column_start.get(j + 1)?);
+        let column = &self.blocks[lo..hi];
+        let at = column.partition_point(|b| b.0 < i);
+        (at < column.len() && column[at].0 == i).then_some(lo + at)
     }
 
     /// The value slot of entry (row, col) of the lower triangle.
@@ -112,7 +118,7 @@ impl Pattern {
     /// A zeroed accumulator for this pattern.
     pub fn accumulator(&self) -> Accumulator {
         Accumulator {
-            blocks: vec![[0.0; 144]; self.block_of.len()],
+            blocks: vec![[0.0; 144]; self.blocks.len()],
             camera_node: if self.camera { vec![[0.0; 72]; self.nodes] } else { Vec::new() },
             camera: [0.0; 36],
             g: vec![0.0; self.unknowns()],
@@ -184,13 +190,16 @@ impl Accumulator {
                 let block = &mut self.blocks[row.pairs[k * (k + 1) / 2 + l]];
                 // Row a belongs to the larger node index of the block.
                 let (rows, cols) = if i >= j { (jk, jl) } else { (jl, jk) };
+                // A diagonal block's upper half is never scattered (`Pattern::scatter`).
+                let diagonal = k == l;
                 for a in 0..UNKNOWNS {
                     let wa = w * rows[a];
                     if wa == 0.0 {
                         continue;
                     }
-                    for b in 0..UNKNOWNS {
-                        block[UNKNOWNS * a + b] += wa * cols[b];
+                    let cols = if diagonal { &cols[..=a] } else { &cols[..] };
+                    for (e, c) in block[UNKNOWNS * a..].iter_mut().zip(cols) {
+                        *e += wa * c;
                     }
                 }
             }

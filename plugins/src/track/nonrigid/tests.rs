@@ -217,7 +217,7 @@ fn bad_input_falls_back_without_a_panic() {
     one.nodes.cover(&points[..1], one.params.node_spacing_m, 1);
     match one.fit(&points, &live, &Iso3::identity()) {
         Ok(Fit::Solved { warp, .. }) => assert!(warp.nodes.iter().all(|n| n.translation_m.iter().all(|v| v.is_finite()))),
-        Ok(Fit::Fallback(_) | Fit::Still(_)) | Err(_) => {}
+        Ok(Fit::Fallback(_) | Fit::Still(..)) | Err(_) => {}
     }
     // Model points with NaN positions bind no node.
     let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None, sigma_m: 0.0 }; 10];
@@ -273,4 +273,18 @@ fn the_gain_is_judged_over_a_window_of_solves() {
     // A gain that is not finite (a term without residuals) is passed on and not remembered.
     assert!(windowed_gain(&mut recent, f64::NAN, 4).is_nan());
     assert_eq!(recent.len(), 4);
+}
+
+#[test]
+fn a_clearly_still_wall_is_solved_on_every_nth_frame_only() {
+    let mut probe = super::Probe::default();
+    // Not judged still: every frame solves.
+    assert!((0..10).all(|_| !probe.skips(8)));
+    // Still: seven frames skip, the eighth probes, and so on.
+    probe.still = true;
+    let skips: Vec<bool> = (0..16).map(|_| probe.skips(8)).collect();
+    let probes: Vec<usize> = (0..16).filter(|&i| !skips[i]).collect();
+    assert_eq!(probes, vec![7, 15]);
+    // Every frame when `still_probe_every_frames` = 1.
+    assert!((0..10).all(|_| !probe.skips(1)));
 }
