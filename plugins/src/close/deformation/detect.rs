@@ -3,7 +3,7 @@
 //! accepted closure.
 
 use capsule_slam_framework::camera::PinholeCamera;
-use capsule_slam_framework::deformation::SurfelTime;
+use capsule_slam_framework::deformation::{Deformation, SurfelTime};
 use capsule_slam_framework::frame::{DepthSource, Masks};
 use capsule_slam_framework::{Context, Iso3, ModelView, RgbdFrame, StageError, TrackStatus};
 
@@ -23,6 +23,9 @@ pub struct Registration {
     /// The check that failed, as a counter name (`inliers`, `residual`, ...; `None` when
     /// accepted or when there was too little overlap to try).
     pub rejected: Option<&'static str>,
+    /// How the inactive surface has moved since it was seen, when the registration that was
+    /// accepted went through a warp (`warped.rs`).
+    pub warp: Option<capsule_slam_framework::deformation::Deformation>,
 }
 
 /// Share of the active view's pixels that the inactive model covers too (0 for views of
@@ -48,7 +51,7 @@ pub fn register_models(
     let active_px = active.valid_pixels();
     let overlap = overlap(active, inactive);
     if overlap < p.min_overlap || active.depth_m.size() != inactive.depth_m.size() {
-        return Ok(Registration { overlap, t_est: None, accepted: None, rejected: None });
+        return Ok(Registration { overlap, t_est: None, accepted: None, rejected: None, warp: None });
     }
     let frame = RgbdFrame {
         depth_source: DepthSource::Measured,
@@ -86,36 +89,112 @@ pub fn register_models(
     let mut scratch = capsule_slam_framework::context::StageReport::default();
     let (tr, before) = tracker.register(&frame, Some(inactive), t_world_cam, true, &mut Context::new(ctx.frame_index, ctx.rig, None, &mut scratch))?;
     let inlier_share = tr.inliers as f64 / active_px as f64;
-    let correction = (t_world_cam.inverse() * tr.t_world_cam).translation.vector.norm();
     let (std_t, std_r) = tr.covariance.map_or((f64::INFINITY, f64::INFINITY), |c| {
         let d = c.diagonal();
         (d.rows(0, 3).max().max(0.0).sqrt(), d.rows(3, 3).max().max(0.0).sqrt())
     });
+    let figures = |t_est: &Iso3, residual_m: f64| Figures {
+        tracked: tr.status == TrackStatus::Tracked,
+        inlier_share,
+        residual_m,
+        std: (std_t, std_r),
+        correction_m: (t_world_cam.inverse() * t_est).translation.vector.norm(),
+        before_m: before,
+    };
+    let rigid = figures(&tr.t_world_cam, tr.residual_rms);
     ctx.count("inlier_share", inlier_share);
     ctx.count("residual_mm", tr.residual_rms * 1e3);
-    ctx.count("correction_mm", correction * 1e3);
-    let ratio = tr.residual_rms / before.unwrap_or(f64::NAN);
-    ctx.count("residual_ratio", ratio);
-    let rejected = if tr.status != TrackStatus::Tracked {
-        Some("lost")
-    } else if inlier_share < p.min_inlier_share {
-        Some("inliers")
-    } else if tr.residual_rms.is_nan() || tr.residual_rms > p.max_residual_m {
-        Some("residual")
-    } else if std_t.is_nan() || std_r.is_nan() || std_t > p.max_std_m || std_r > p.max_std_rad {
-        Some("uncertain")
-    } else if correction > p.max_correction_m {
-        Some("large_correction")
-    } else if ratio.is_nan() || ratio > p.max_residual_ratio {
-        Some("unexplained")
-    } else if correction < p.min_correction_m {
-        Some("small_correction")
-    } else if before.is_none_or(|b| b < p.min_disagreement_m) {
-        Some("agreement")
-    } else {
-        None
+    ctx.count("correction_mm", rigid.correction_m * 1e3);
+    ctx.count("residual_ratio", rigid.ratio());
+    let rejected = rigid.rejection(p);
+    let registration = Registration { overlap, t_est: Some(tr.t_world_cam), accepted: rejected.is_none().then_some(tr.t_world_cam), rejected, warp: None };
+    if !(p.warp && matches!(rejected, Some("residual" | "unexplained"))) {
+        return Ok(registration);
+    }
+    // The residual the rigid correction leaves may be the wall's motion since the old surface
+    // was seen: register through a warp, from the tracked pose (`warped.rs`).
+    Ok(match through_warp(active, inactive, t_world_cam, p, ctx, figures)? {
+        Some((t_est, warp)) => Registration { accepted: Some(t_est), rejected: None, warp: Some(warp), ..registration },
+        None => registration,
+    })
+}
+
+/// The registration through the warp and its checks (`figures` of a pose and a residual):
+/// the accepted pose and warp, or `None` (counted and, for a fallback, warned).
+fn through_warp(
+    active: &ModelView,
+    inactive: &ModelView,
+    t_world_cam: &Iso3,
+    p: &DeformationParams,
+    ctx: &mut Context,
+    figures: impl Fn(&Iso3, f64) -> Figures,
+) -> Result<Option<(Iso3, Deformation)>, StageError> {
+    ctx.count("warp_tried", 1.0);
+    let clock = std::time::Instant::now();
+    let warped = super::warped::register_through_warp(active, inactive, t_world_cam, p, ctx.rig.camera())?;
+    ctx.count("ms_warp_registration", clock.elapsed().as_secs_f64() * 1e3);
+    let w = match warped {
+        Ok(w) => w,
+        Err(why) => {
+            ctx.count("rejected_warp_fallback", 1.0);
+            ctx.warn(format!("loop closure through the warp: {why}"));
+            return Ok(None);
+        }
     };
-    Ok(Registration { overlap, t_est: Some(tr.t_world_cam), accepted: rejected.is_none().then_some(tr.t_world_cam), rejected })
+    ctx.count("warp_residual_mm", w.rms_m * 1e3);
+    ctx.count("warp_max_node_mm", w.max_node_m * 1e3);
+    let check = if w.max_node_m > p.max_warp_m { Some("large_warp") } else { figures(&w.t_world_cam, w.rms_m).rejection(p) };
+    if let Some(check) = check {
+        ctx.count(&format!("rejected_warp_{check}"), 1.0);
+        return Ok(None);
+    }
+    ctx.count("warp_passed", 1.0);
+    Ok(Some((w.t_world_cam, w.warp)))
+}
+
+/// What the checks of a registration read.
+struct Figures {
+    tracked: bool,
+    inlier_share: f64,
+    /// RMS residual after the correction, metres.
+    residual_m: f64,
+    /// Largest translation and rotation standard deviations of the pose.
+    std: (f64, f64),
+    /// How far the correction moves the camera, metres.
+    correction_m: f64,
+    /// RMS residual before any correction, metres.
+    before_m: Option<f64>,
+}
+
+impl Figures {
+    fn ratio(&self) -> f64 {
+        self.residual_m / self.before_m.unwrap_or(f64::NAN)
+    }
+
+    /// The first check that fails, as a counter name.
+    fn rejection(&self, p: &DeformationParams) -> Option<&'static str> {
+        let (std_t, std_r) = self.std;
+        let ratio = self.ratio();
+        if !self.tracked {
+            Some("lost")
+        } else if self.inlier_share < p.min_inlier_share {
+            Some("inliers")
+        } else if self.residual_m.is_nan() || self.residual_m > p.max_residual_m {
+            Some("residual")
+        } else if std_t.is_nan() || std_r.is_nan() || std_t > p.max_std_m || std_r > p.max_std_rad {
+            Some("uncertain")
+        } else if self.correction_m > p.max_correction_m {
+            Some("large_correction")
+        } else if ratio.is_nan() || ratio > p.max_residual_ratio {
+            Some("unexplained")
+        } else if self.correction_m < p.min_correction_m {
+            Some("small_correction")
+        } else if self.before_m.is_none_or(|b| b < p.min_disagreement_m) {
+            Some("agreement")
+        } else {
+            None
+        }
+    }
 }
 
 /// One surface sample of a closure: a pixel where both models have a surface.
@@ -170,20 +249,35 @@ pub fn median_t0(samples: &[Sample]) -> Option<u32> {
 /// Active points carry the current time `now` (ElasticFusion), inactive ones the time of the
 /// surfel they sample (not their surfels' creation times, which may be old for a surface still
 /// in view: `docs/results/loop-closure.md`).
-pub fn constraints(samples: &[Sample], correction: impl Fn(u32) -> Iso3, now: u32, pins: bool, reference: Reference) -> Vec<Constraint> {
+///
+/// With a `warp` (a registration through the warp, `warped.rs`) the old surface has moved
+/// since it was seen: each inactive point `q` goes to `W(q)` (`Old`; `C⁻¹ W(q)` with `Recent`)
+/// instead of being held where it was.
+pub fn constraints(
+    samples: &[Sample],
+    correction: impl Fn(u32) -> Iso3,
+    now: u32,
+    pins: bool,
+    reference: Reference,
+    warp: Option<&Deformation>,
+) -> Vec<Constraint> {
     let mut out = Vec::new();
     for s in samples {
         let c = correction(s.inactive_time);
+        let moved = warp.map(|w| w.warp_point(&s.inactive_m, s.inactive_time));
         match reference {
             Reference::Old => {
                 let target = c * s.active_m;
                 out.push(Constraint { source_m: s.active_m, target_m: target, time: now });
-                if pins {
+                if let Some(m) = moved {
+                    out.push(Constraint { source_m: s.inactive_m, target_m: m, time: s.inactive_time });
+                } else if pins {
                     out.push(Constraint { source_m: target, target_m: target, time: s.inactive_time });
                 }
             }
             Reference::Recent => {
-                out.push(Constraint { source_m: s.inactive_m, target_m: c.inverse() * s.inactive_m, time: s.inactive_time });
+                let q = moved.unwrap_or(s.inactive_m);
+                out.push(Constraint { source_m: s.inactive_m, target_m: c.inverse() * q, time: s.inactive_time });
                 if pins {
                     out.push(Constraint { source_m: s.active_m, target_m: s.active_m, time: now });
                 }

@@ -24,6 +24,7 @@
 
 pub mod detect;
 mod params;
+pub mod warped;
 
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, PoseWarp, SurfelTime, Window};
 use capsule_slam_framework::registry::BuildEnv;
@@ -79,7 +80,10 @@ impl LoopCloser for DeformationCloser {
         let clock = std::time::Instant::now();
         let Some(then) = median_t0(&samples) else { return Ok(None) };
         ctx.count("loop_age_frames", now.saturating_sub(then as usize) as f64);
-        let cons = constraints(&samples, |_| c, now as u32, p.pins, p.reference);
+        let cons = constraints(&samples, |_| c, now as u32, p.pins, p.reference, reg.warp.as_ref());
+        if reg.warp.is_some() {
+            ctx.count("through_warp", 1.0);
+        }
         let snap_clock = std::time::Instant::now();
         let snap = map.snapshot()?;
         ctx.count("ms_snapshot", snap_clock.elapsed().as_secs_f64() * 1e3);

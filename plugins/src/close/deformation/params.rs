@@ -144,5 +144,14 @@ capsule_slam_framework::plugin_params! {
         pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
         /// Registration ICP correspondence gate.
         pub icp_gate_m: f64 = 0.004; unit = "m"; range = 0.0..=1.0;
+        /// When the rigid registration leaves a residual it cannot explain (rejected for
+        /// `residual` or `unexplained`), register the two models again through a warp (the
+        /// `nonrigid` tracker's joint solve of camera and nodes, `warped.rs`): a moving wall's
+        /// old surface was fused at another phase. Accepted by the same checks on the residual
+        /// after the warp; the closure then also moves the inactive surface by the warp.
+        pub warp: bool = true; unit = "-";
+        /// Reject a warp that moves a node farther than this (a few wave amplitudes; a larger
+        /// mismatch is another surface, not the same one moved).
+        pub max_warp_m: f64 = 0.005; unit = "m"; range = 0.0..=1.0;
     }
 }

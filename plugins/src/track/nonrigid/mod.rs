@@ -43,7 +43,7 @@ mod energy;
 pub mod fixture;
 mod nodes;
 mod params;
-mod points;
+pub(crate) mod points;
 mod solve;
 mod system;
 #[cfg(test)]
@@ -326,6 +326,13 @@ impl Nonrigid {
             .collect();
         let references = solve_ids.iter().map(|&i| self.nodes.nodes[i].reference_m.coords).collect();
         Some((Problem { points: bound, graph, references, normals, camera: p.camera == CameraMode::Joint }, solve_ids, used))
+    }
+
+    /// Covers `points` with nodes (none kept from before need cover them) and fits: one
+    /// registration of a model to a view, as the `deformation` closer's through the warp.
+    pub(crate) fn fit_fresh(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3) -> Result<Fit, StageError> {
+        self.nodes.cover(points, self.params.node_spacing_m, self.params.max_nodes as usize);
+        self.fit(points, level, t_start)
     }
 
     /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
