@@ -52,9 +52,11 @@ capsule_slam_framework::plugin_params! {
         pub max_incidence_rad: f64 = 1.15; unit = "rad"; range = 0.0..=1.571;
         /// Fewest model points for a node to be solved.
         pub min_points_per_node: u32 = 8; unit = "-"; range = 1.0..=10000.0;
-        /// Gauss-Newton iterations (SurfelWarp: 6 after a 3-iteration rigid pre-solve; 5 measured
-        /// better than 3 on the deforming phantoms but the fast one, `docs/results/nonrigid.md`).
-        pub iterations: u32 = 5; unit = "-"; range = 1.0..=50.0;
+        /// Gauss-Newton iterations (SurfelWarp: 6 after a 3-iteration rigid pre-solve). 8 measured
+        /// better than 5 on the slow, fast and loopy deforming phantoms (presets 1, 4, 5 over
+        /// seeds), slightly worse on presets 2 and 7, `docs/results/nonrigid.md`; each costs
+        /// about 5 ms on a moving wall.
+        pub iterations: u32 = 8; unit = "-"; range = 1.0..=50.0;
         /// Point-to-plane noise scale (as `icp-rgb`'s `sigma_icp_m`).
         pub sigma_icp_m: f64 = 0.0003; unit = "m"; range = 1.0e-7..=1.0;
         /// Weight of the photometric term (paper Eq. 4: 0.1; 3 measured best for the joint solve,
