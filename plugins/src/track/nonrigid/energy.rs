@@ -18,7 +18,10 @@
 use nalgebra::{Matrix3, Point3, Vector3, Vector6};
 
 /// The 12 Jacobian entries of node k for a residual with world gradient `a` at x̃: `v = x − g_k`,
-/// `w` the node's weight.
+/// `w` the node's weight. The assembly never forms it: `system::Accumulator::add_point` adds
+/// its products in the Kronecker form `w_k [v; 1] ⊗ a`; the tests check both against finite
+/// differences and dense products.
+#[cfg(test)]
 pub fn node_row(a: &Vector3<f64>, v: &Vector3<f64>, w: f64) -> [f64; 12] {
     let mut out = [0.0; 12];
     for col in 0..3 {

@@ -20,9 +20,9 @@ use crate::common::ed_graph::{Graph, GraphWeights, UNKNOWNS};
 use crate::track::icp_rgb::frames::Level;
 use crate::track::icp_rgb::{correlated_count, huber, residual_sigma};
 
-use super::energy::{data_camera_row, data_residual, image_gradient_cam, node_row, photo_camera_row, photo_world_gradient};
+use super::energy::{data_camera_row, data_residual, image_gradient_cam, photo_camera_row, photo_world_gradient};
 use super::points::{ModelPoint, look};
-use super::system::{Accumulator, Factor, Pattern, Row};
+use super::system::{Accumulator, Factor, Pattern, PointSums, Residual};
 
 /// The most nodes one point binds (the range of `k`).
 const MAX_BINDING: usize = 8;
@@ -263,7 +263,19 @@ impl<'a> Problem<'a> {
                 let mut acc = pattern.accumulator();
                 let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
                 for ((p, binding), pairs) in pts.iter().zip(ids) {
-                    let r2 = self.point_terms(level, t, w, p, binding, pairs, &mut |row, r, wt| acc.add(row, r, wt));
+                    let mut sums = PointSums::default();
+                    let r2 = self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q));
+                    if sums.count > 0 {
+                        // The node factors `w_k [x − g_k; 1]` on the stack (`k` ≤ 8 by its
+                        // range; a longer binding is cut, as the slots of `pairs` stop there too).
+                        let mut nodes = [(0usize, [0.0; 4]); MAX_BINDING];
+                        let binding = &binding[..binding.len().min(MAX_BINDING)];
+                        for (slot, &(k, wk)) in nodes.iter_mut().zip(binding) {
+                            let v = p.x_world_m - self.graph.deformation.nodes[k].position_m;
+                            *slot = (k, [wk * v.x, wk * v.y, wk * v.z, wk]);
+                        }
+                        acc.add_point(&nodes[..binding.len()], pairs, &sums);
+                    }
                     for (k, v) in r2.into_iter().enumerate() {
                         if let Some(v) = v {
                             n[k] += 1;
@@ -287,9 +299,9 @@ impl<'a> Problem<'a> {
         (total, (n[0], rms(0), rms(1)))
     }
 
-    /// One point's residuals given to `sink`; the squared point-to-plane residual when the point
-    /// is an ICP inlier, and the squared photometric residual when it has one.
-    #[allow(clippy::too_many_arguments)]
+    /// One point's residuals given to `sink` (their Jacobians for node k are
+    /// `node_row(a, x − g_k, w_k)`); the squared point-to-plane residual when the point is an ICP
+    /// inlier, and the squared photometric residual when it has one.
     pub(crate) fn point_terms(
         &self,
         level: &Level,
@@ -297,16 +309,10 @@ impl<'a> Problem<'a> {
         w: &Weights,
         p: &ModelPoint,
         binding: &[(usize, f64)],
-        pairs: &[usize],
-        sink: &mut impl FnMut(&Row<'_>, f64, f64),
+        sink: &mut impl FnMut(&Residual),
     ) -> [Option<f64>; 2] {
-        let d = &self.graph.deformation;
-        let warped = d.warp_with(&p.x_world_m, binding);
+        let warped = self.graph.deformation.warp_with(&p.x_world_m, binding);
         let Some(live) = look(level, t, &warped) else { return [None; 2] };
-        // The node rows on the stack (`k` ≤ 8 by its range; a longer binding is cut, as the
-        // slots of `pairs` stop there too).
-        let mut rows = [(0usize, [0.0; 12]); MAX_BINDING];
-        let binding = &binding[..binding.len().min(MAX_BINDING)];
         let mut icp_r2 = None;
         // σ of the residual (floor, live depth and model) for the gate and the Huber threshold;
         // the weight counts a correlated patch of live points once (`icp-rgb`'s `gn.rs`).
@@ -316,11 +322,8 @@ impl<'a> Problem<'a> {
         let close = (warped - live.p_world_m).norm() <= w.gate_m.max(w.gate_sigmas * sigma) && p.n_world.dot(&live.n_world) >= w.cos_gate;
         if close {
             let r = data_residual(&p.n_world, &warped, &live.p_world_m);
-            for (slot, &(k, wk)) in rows.iter_mut().zip(binding) {
-                *slot = (k, node_row(&p.n_world, &(p.x_world_m - d.nodes[k].position_m), wk));
-            }
-            let row = Row { nodes: &rows[..binding.len()], pairs, camera: data_camera_row(&p.n_world, &live.p_world_m) };
-            sink(&row, r, huber(r / sigma, w.huber_k) / sigma_w2);
+            let camera = data_camera_row(&p.n_world, &live.p_world_m);
+            sink(&Residual { a: p.n_world, camera, r, w: huber(r / sigma, w.huber_k) / sigma_w2 });
             icp_r2 = Some(r * r);
         }
         if w.w_rgb > 0.0
@@ -330,12 +333,9 @@ impl<'a> Problem<'a> {
         {
             let a = image_gradient_cam(&live.q_cam_m, (gx, gy), level.cam.fx, level.cam.fy);
             let m = photo_world_gradient(t.rotation.to_rotation_matrix().matrix(), &a);
-            for (slot, &(k, wk)) in rows.iter_mut().zip(binding) {
-                *slot = (k, node_row(&m, &(p.x_world_m - d.nodes[k].position_m), wk));
-            }
             let r = i - reference;
-            let row = Row { nodes: &rows[..binding.len()], pairs, camera: photo_camera_row(&m, &warped) };
-            sink(&row, r, w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb));
+            let weight = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+            sink(&Residual { a: m, camera: photo_camera_row(&m, &warped), r, w: weight });
             return [icp_r2, Some(r * r)];
         }
         [icp_r2, None]

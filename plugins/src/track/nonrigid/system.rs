@@ -6,7 +6,7 @@
 //! (nodes, edges and the node pairs the pixels couple) stays the same.
 
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
-use nalgebra::Vector6;
+use nalgebra::{Matrix3, Vector3, Vector6};
 
 use crate::common::ed_graph::UNKNOWNS;
 use crate::common::sparse_llt::{SparseLlt, SparseLltError};
@@ -153,15 +153,54 @@ impl Pattern {
     }
 }
 
-/// One residual's Jacobian: per bound node (solve index, block ids against the other bound
-/// nodes, 12 entries) and the camera's 6.
-pub struct Row<'a> {
-    /// `(node, row)` for each bound node, in binding order.
-    pub nodes: &'a [(usize, [f64; 12])],
-    /// Block ids of the pairs (k, l), k ≥ l in binding order: `pairs[k (k + 1) / 2 + l]`.
-    pub pairs: &'a [usize],
-    /// The camera entries (ignored without a camera block).
+/// One residual of a model point whose warped position x̃ it depends on linearly: gradient `a`
+/// with respect to x̃ (world frame), camera row, value and weight. Its Jacobian entries for a
+/// bound node k are `w_k (e_k ⊗ a)`, `e_k = [x − g_k; 1]` (`energy::node_row`).
+#[derive(Debug, Clone, Copy)]
+pub struct Residual {
+    /// ∂r/∂x̃.
+    pub a: Vector3<f64>,
+    /// ∂r/∂ξ (ignored without a camera block).
     pub camera: Vector6<f64>,
+    /// The residual.
+    pub r: f64,
+    /// Its weight.
+    pub w: f64,
+}
+
+/// The weighted sums of one model point's residuals that its normal-equation blocks need: all
+/// its residuals share the node factors `w_k e_k`, so a node pair's block is
+/// `(w_k e_k)(w_l e_l)ᵀ ⊗ Σ W a aᵀ` and the point's residuals enter the blocks once.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct PointSums {
+    /// Σ W a aᵀ.
+    aa: Matrix3<f64>,
+    /// Σ W c aᵀ (camera rows × gradient).
+    ca: nalgebra::Matrix6x3<f64>,
+    /// Σ W c cᵀ.
+    cc: nalgebra::Matrix6<f64>,
+    /// Σ W r a.
+    ra: Vector3<f64>,
+    /// Σ W r c.
+    rc: Vector6<f64>,
+    /// Σ W r².
+    energy: f64,
+    /// Residuals added.
+    pub count: usize,
+}
+
+impl PointSums {
+    /// Adds one residual.
+    pub fn add(&mut self, q: &Residual) {
+        let wa = q.w * q.a;
+        self.aa += wa * q.a.transpose();
+        self.ca += q.camera * wa.transpose();
+        self.cc += q.w * q.camera * q.camera.transpose();
+        self.ra += q.r * wa;
+        self.rc += q.w * q.r * q.camera;
+        self.energy += q.w * q.r * q.r;
+        self.count += 1;
+    }
 }
 
 /// JᵀWJ in dense blocks and JᵀWr, summed over residuals.
@@ -177,38 +216,44 @@ pub struct Accumulator {
 }
 
 impl Accumulator {
-    /// Adds one residual r of weight w.
-    pub fn add(&mut self, row: &Row<'_>, r: f64, w: f64) {
-        self.energy += w * r * r;
+    /// Adds one model point's residuals (`sums`), bound to `nodes` (solve index, `w_k [x − g_k;
+    /// 1]`) whose pair blocks are `pairs[k (k + 1) / 2 + l]` for l ≤ k in binding order.
+    pub fn add_point(&mut self, nodes: &[(usize, [f64; 4])], pairs: &[usize], sums: &PointSums) {
+        self.energy += sums.energy;
         let has_camera = !self.camera_node.is_empty();
-        for (k, (i, jk)) in row.nodes.iter().enumerate() {
+        let m = &sums.aa;
+        for (k, &(i, uk)) in nodes.iter().enumerate() {
             let g = &mut self.g[UNKNOWNS * i..UNKNOWNS * (i + 1)];
-            for (gv, jv) in g.iter_mut().zip(jk) {
-                *gv += w * r * jv;
+            for col in 0..4 {
+                for axis in 0..3 {
+                    g[3 * col + axis] += uk[col] * sums.ra[axis];
+                }
             }
-            for (l, (j, jl)) in row.nodes.iter().enumerate().take(k + 1) {
-                let block = &mut self.blocks[row.pairs[k * (k + 1) / 2 + l]];
-                // Row a belongs to the larger node index of the block.
-                let (rows, cols) = if i >= j { (jk, jl) } else { (jl, jk) };
-                // A diagonal block's upper half is never scattered (`Pattern::scatter`).
+            for (l, &(j, ul)) in nodes.iter().enumerate().take(k + 1) {
+                let block = &mut self.blocks[pairs[k * (k + 1) / 2 + l]];
+                // Row entries belong to the larger node index of the block; a diagonal block's
+                // upper half is never scattered (`Pattern::scatter`).
+                let (ur, uc) = if i >= j { (uk, ul) } else { (ul, uk) };
                 let diagonal = k == l;
-                for a in 0..UNKNOWNS {
-                    let wa = w * rows[a];
-                    if wa == 0.0 {
-                        continue;
-                    }
-                    let cols = if diagonal { &cols[..=a] } else { &cols[..] };
-                    for (e, c) in block[UNKNOWNS * a..].iter_mut().zip(cols) {
-                        *e += wa * c;
+                for ca in 0..4 {
+                    for cb in 0..(if diagonal { ca + 1 } else { 4 }) {
+                        let f = ur[ca] * uc[cb];
+                        for aa in 0..3 {
+                            let row = &mut block[UNKNOWNS * (3 * ca + aa) + 3 * cb..UNKNOWNS * (3 * ca + aa) + 3 * cb + 3];
+                            for (ab, e) in row.iter_mut().enumerate() {
+                                *e += f * m[(aa, ab)];
+                            }
+                        }
                     }
                 }
             }
             if has_camera {
-                let block = &mut self.camera_node[*i];
+                let block = &mut self.camera_node[i];
                 for c in 0..6 {
-                    let wc = w * row.camera[c];
-                    for b in 0..UNKNOWNS {
-                        block[UNKNOWNS * c + b] += wc * jk[b];
+                    for col in 0..4 {
+                        for axis in 0..3 {
+                            block[UNKNOWNS * c + 3 * col + axis] += uk[col] * sums.ca[(c, axis)];
+                        }
                     }
                 }
             }
@@ -216,9 +261,9 @@ impl Accumulator {
         if has_camera {
             let base = self.g.len() - 6;
             for c in 0..6 {
-                self.g[base + c] += w * r * row.camera[c];
+                self.g[base + c] += sums.rc[c];
                 for d in 0..=c {
-                    self.camera[6 * c + d] += w * row.camera[c] * row.camera[d];
+                    self.camera[6 * c + d] += sums.cc[(c, d)];
                 }
             }
         }

@@ -100,17 +100,18 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
     let nodes = problem.graph.deformation.nodes.len();
     let mut rows: Vec<(nalgebra::DVector<f64>, f64, f64)> = Vec::new();
     for (p, binding) in &problem.points {
-        problem.point_terms(&live, &t_wc, &w, p, binding, &[0; 64], &mut |row: &super::system::Row<'_>, r, wt| {
+        problem.point_terms(&live, &t_wc, &w, p, binding, &mut |q: &super::system::Residual| {
             let mut j = nalgebra::DVector::zeros(n);
-            for (k, entries) in row.nodes {
-                for (m, v) in entries.iter().enumerate() {
-                    j[12 * k + m] += v;
+            for &(k, wk) in binding {
+                let v = p.x_world_m - problem.graph.deformation.nodes[k].position_m;
+                for (m, e) in super::energy::node_row(&q.a, &v, wk).iter().enumerate() {
+                    j[12 * k + m] += e;
                 }
             }
             for c in 0..6 {
-                j[12 * nodes + c] = row.camera[c];
+                j[12 * nodes + c] = q.camera[c];
             }
-            rows.push((j, r, wt));
+            rows.push((j, q.r, q.w));
         });
     }
     let gw =
@@ -240,7 +241,8 @@ fn a_points_weight_follows_the_live_depths_sigma_and_its_correlation() {
         live.sigma_correlation_px = correlation_px;
         let mut rows = 0;
         for (p, binding) in &problem.points {
-            problem.point_terms(&live, &t_wc, &w, p, binding, &[0; 64], &mut |_, r, wt| {
+            problem.point_terms(&live, &t_wc, &w, p, binding, &mut |q: &super::system::Residual| {
+                let (r, wt) = (q.r, q.w);
                 let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
                 let expected = crate::track::icp_rgb::huber(r / sigma, w.huber_k) / (w.sigma_icp_m * w.sigma_icp_m + count * sigma_live * sigma_live);
                 assert!((wt / expected - 1.0).abs() < 1e-5, "weight {wt} against {expected}");
