@@ -46,18 +46,24 @@ struct Scene {
     old: Vec<Surfel>,
 }
 
-fn scene() -> Scene {
-    let phantom = Phantom::new(PhantomSpec { frames: 300, size: SizePreset::NanEye, ..PhantomSpec::preset(2) }).unwrap();
-    let pose = phantom.pose(150);
-    let mut old = phantom.surface(phantom.time_s(150), 3.0e-4).surfels;
-    // The surface comes in sweep order along the stomach: creation times follow it.
-    let n = old.len();
-    for (i, s) in old.iter_mut().enumerate() {
+/// The wall at `frame` as fused surfels: the surface comes in sweep order along the stomach, and
+/// creation times (0 to 499) follow it.
+fn fused_wall(phantom: &Phantom, frame: usize) -> Vec<Surfel> {
+    let mut surfels = phantom.surface(phantom.time_s(frame), 3.0e-4).surfels;
+    let n = surfels.len();
+    for (i, s) in surfels.iter_mut().enumerate() {
         s.radius_m = 4.5e-4;
         s.confidence = 20.0;
         s.t0 = (i * 500 / n) as u32;
         s.t = s.t0;
     }
+    surfels
+}
+
+fn scene() -> Scene {
+    let phantom = Phantom::new(PhantomSpec { frames: 300, size: SizePreset::NanEye, ..PhantomSpec::preset(2) }).unwrap();
+    let pose = phantom.pose(150);
+    let old = fused_wall(&phantom, 150);
     Scene { phantom, pose, old }
 }
 
@@ -260,19 +266,7 @@ fn a_loop_is_confirmed_by_consecutive_agreeing_registrations() {
 fn moving_scene() -> (Scene, Vec<Surfel>, Vec<Surfel>, Iso3) {
     let phantom = Phantom::new(PhantomSpec { frames: 300, size: SizePreset::NanEye, deform_mm: 3.0, ..PhantomSpec::preset(2) }).unwrap();
     let pose = phantom.pose(150);
-    let stamp = |surfels: &mut Vec<Surfel>| {
-        let n = surfels.len();
-        for (i, s) in surfels.iter_mut().enumerate() {
-            s.radius_m = 4.5e-4;
-            s.confidence = 20.0;
-            s.t0 = (i * 500 / n) as u32;
-            s.t = s.t0;
-        }
-    };
-    let mut old = phantom.surface(phantom.time_s(110), 3.0e-4).surfels;
-    let mut now = phantom.surface(phantom.time_s(150), 3.0e-4).surfels;
-    stamp(&mut old);
-    stamp(&mut now);
+    let (old, now) = (fused_wall(&phantom, 110), fused_wall(&phantom, 150));
     let sc = Scene { phantom, pose, old };
     let d = drift(&sc);
     let new = moved(&now, &d);
