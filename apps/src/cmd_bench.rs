@@ -22,6 +22,10 @@ pub struct BenchArgs {
     /// Phantom preset.
     #[arg(long, default_value_t = 2)]
     preset: u8,
+    /// Amplitude of the phantom's peristaltic wave, millimetres (0: a rigid wall; a moving
+    /// wall makes the default tracker solve its warp every frame).
+    #[arg(long = "deform", value_name = "MM", default_value_t = 0.0)]
+    deform_mm: f64,
     /// Frames per run.
     #[arg(long, default_value_t = 300)]
     frames: usize,
@@ -48,9 +52,10 @@ pub fn run_bench(args: &BenchArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow:
     println!("|---|---|---|---|---|");
     for name in args.sizes.split(',').map(str::trim) {
         let size = SizePreset::parse(name).ok_or_else(|| anyhow!("--sizes: unknown size `{name}` (naneye, 320, voyager, potensic)"))?;
-        let spec = PhantomSpec { frames: args.frames, size, ..PhantomSpec::preset(args.preset) };
+        let spec = PhantomSpec { frames: args.frames, size, deform_mm: args.deform_mm, ..PhantomSpec::preset(args.preset) };
         let (w, h) = size.size();
-        let dir = cache.join(format!("phantom-preset{}-{w}x{h}-{}f-seed{}", spec.preset, spec.frames, spec.seed));
+        let wave = if spec.deform_mm > 0.0 { format!("-deform{}mm", spec.deform_mm) } else { String::new() };
+        let dir = cache.join(format!("phantom-preset{}-{w}x{h}-{}f-seed{}{wave}", spec.preset, spec.frames, spec.seed));
         if !is_complete(&dir, &spec) {
             eprintln!("generating {} into {}", name, dir.display());
             crate::cmd_synth::synthesize(spec, &dir, true)?;
