@@ -35,10 +35,13 @@ pub struct Warped {
     pub max_node_m: f64,
 }
 
-/// The joint solve's parameters for a closure: the tracker's defaults, except that every warp
-/// is kept (the closer judges it), the nodes may move up to `max_warp_m` (and correspondences
-/// reach as far) without a per-frame step prior (the old surface was seen many frames ago), and the camera may move as far as a
-/// correction may (`max_correction_m`), in twice the tracker's iterations.
+/// The joint solve's parameters for a closure: the tracker's defaults (its camera prior too:
+/// with a weaker one the solve ran off on 41 of 107 tries on the loopy phantoms, with it on 26
+/// of 88), except that every warp is kept (the closer judges it), the nodes may move up to
+/// `max_warp_m` (and correspondences reach as far) without a per-frame step prior (the old
+/// surface was seen many frames ago), the camera as far as a correction may
+/// (`max_correction_m`), in twice the tracker's iterations. The photometric weight stays the
+/// tracker's: with the closer's own (0.1) the unit test's solve runs off.
 fn params(p: &DeformationParams) -> NonrigidParams {
     let tracker = NonrigidParams::default();
     NonrigidParams {
@@ -48,10 +51,8 @@ fn params(p: &DeformationParams) -> NonrigidParams {
         max_step_m: p.max_warp_m,
         gate_m: p.max_warp_m,
         sigma_step_m: 0.0,
-        sigma_camera_m: p.max_correction_m,
         max_camera_step_m: p.max_correction_m,
         max_camera_step_rad: 5.0 * tracker.sigma_camera_rad,
-        sigma_camera_rad: 5.0 * tracker.sigma_camera_rad,
         iterations: 2 * tracker.iterations,
         camera: CameraMode::Joint,
         ..tracker
