@@ -25,7 +25,7 @@ pub struct Registration {
     pub rejected: Option<&'static str>,
     /// How the inactive surface has moved since it was seen, when the registration that was
     /// accepted went through a warp (`warped.rs`).
-    pub warp: Option<capsule_slam_framework::deformation::Deformation>,
+    pub warp: Option<Deformation>,
 }
 
 /// Share of the active view's pixels that the inactive model covers too (0 for views of
