@@ -15,7 +15,6 @@ use capsule_slam_framework::image::gray_from_rgb;
 use capsule_slam_framework::{Iso3, ModelView, StageError};
 
 use super::params::DeformationParams;
-use crate::common::maps::GeometryParams;
 use crate::track::icp_rgb::IcpRgbParams;
 use crate::track::icp_rgb::frames::reference;
 use crate::track::nonrigid::points::sample;
@@ -70,15 +69,7 @@ pub fn register_through_warp(
     p: &DeformationParams,
     cam: &PinholeCamera,
 ) -> Result<Result<Warped, String>, StageError> {
-    let rigid = IcpRgbParams::default();
-    let prep = GeometryParams {
-        min_m: rigid.min_depth_m,
-        max_m: rigid.max_depth_m,
-        radius_px: 0,
-        sigma_px: rigid.bilateral_sigma_px,
-        sigma_m: rigid.bilateral_sigma_m,
-        edge_jump_m: rigid.edge_jump_m,
-    };
+    let prep = IcpRgbParams::default().depth_prep();
     let Some(mut levels) = reference(Some(active), None, cam, 1, &prep) else { return Ok(Err("the active view is empty".into())) };
     let live = levels.remove(0);
     let mut gray = gray_from_rgb(&inactive.colour);

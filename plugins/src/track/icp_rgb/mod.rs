@@ -225,15 +225,7 @@ impl IcpRgb {
     }
 
     fn prep(&self) -> DepthPrep {
-        let p = &self.params;
-        DepthPrep {
-            min_m: p.min_depth_m,
-            max_m: p.max_depth_m,
-            radius_px: p.bilateral_radius_px as usize,
-            sigma_px: p.bilateral_sigma_px,
-            sigma_m: p.bilateral_sigma_m,
-            edge_jump_m: p.edge_jump_m,
-        }
+        self.params.depth_prep()
     }
 
     /// The ICP noise scale, loss residual and loss inlier share for a depth source.

@@ -24,9 +24,6 @@ use super::energy::{data_camera_row, data_residual, image_gradient_cam, photo_ca
 use super::points::{ModelPoint, look};
 use super::system::{Accumulator, Factor, Pattern, PointSums, Residual};
 
-/// The most nodes one point binds (the range of `k`).
-const MAX_BINDING: usize = 8;
-
 /// The weights and gates of the energy.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Weights {
@@ -119,7 +116,8 @@ pub struct Outcome {
 pub(crate) struct Layout {
     /// The normal matrix (lower triangle).
     pub(crate) pattern: Pattern,
-    pair_ids: Vec<Vec<usize>>,
+    /// Per bound model point, what its residuals need of the layout (fixed for the frame).
+    bound: Vec<BoundPoint>,
     reg_slots: Vec<usize>,
     diag: Vec<usize>,
     /// Per node, the slots of its translation block's lower triangle, (a, b) for b ≤ a, row major.
@@ -154,7 +152,7 @@ impl<'a> Problem<'a> {
     /// The normal-equation pattern of this problem and where every term lands in it.
     pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
         let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera);
-        let pair_ids: Vec<Vec<usize>> = self.points.iter().map(|(_, b)| pair_ids(&pattern, b)).collect();
+        let bound: Vec<BoundPoint> = self.points.iter().map(|(p, b)| self.bound_point(&pattern, p, b)).collect();
         let mut reg_slots = Vec::new();
         self.graph.visit(&Self::graph_weights(w), |_, row| {
             for &(a, _) in row {
@@ -180,13 +178,13 @@ impl<'a> Problem<'a> {
                 s
             })
             .collect();
-        Ok(Layout { pattern, pair_ids, reg_slots, diag, translation_slots })
+        Ok(Layout { pattern, bound, reg_slots, diag, translation_slots })
     }
 
     /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
     /// camera departure `xi`; returns `JᵀWr` and (ICP inliers, ICP RMS, photometric RMS).
     pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, (usize, f64, f64)) {
-        let (acc, stats) = self.accumulate(level, t, w, &layout.pattern, &layout.pair_ids);
+        let (acc, stats) = self.accumulate(level, t, w, &layout.pattern, &layout.bound);
         let mut g = layout.pattern.scatter(&acc);
         self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
         self.add_priors(w, xi, &mut layout.pattern, &layout.diag, &mut g);
@@ -253,28 +251,20 @@ impl<'a> Problem<'a> {
 
     /// The data terms at pose `t`: the accumulator and (inliers, ICP RMS, photometric RMS),
     /// summed over four fixed chunks in order (the same sums on any thread count).
-    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, pair_ids: &[Vec<usize>]) -> (Accumulator, (usize, f64, f64)) {
+    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, bound: &[BoundPoint]) -> (Accumulator, (usize, f64, f64)) {
         let chunk = self.points.len().div_ceil(4).max(1);
         let parts: Vec<(Accumulator, [usize; 2], [f64; 2])> = self
             .points
             .par_chunks(chunk)
-            .zip(pair_ids.par_chunks(chunk))
-            .map(|(pts, ids)| {
+            .zip(bound.par_chunks(chunk))
+            .map(|(pts, bound)| {
                 let mut acc = pattern.accumulator();
                 let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
-                for ((p, binding), pairs) in pts.iter().zip(ids) {
+                for ((p, binding), b) in pts.iter().zip(bound) {
                     let mut sums = PointSums::default();
                     let r2 = self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q));
                     if sums.count > 0 {
-                        // The node factors `w_k [x − g_k; 1]` on the stack (`k` ≤ 8 by its
-                        // range; a longer binding is cut, as the slots of `pairs` stop there too).
-                        let mut nodes = [(0usize, [0.0; 4]); MAX_BINDING];
-                        let binding = &binding[..binding.len().min(MAX_BINDING)];
-                        for (slot, &(k, wk)) in nodes.iter_mut().zip(binding) {
-                            let v = p.x_world_m - self.graph.deformation.nodes[k].position_m;
-                            *slot = (k, [wk * v.x, wk * v.y, wk * v.z, wk]);
-                        }
-                        acc.add_point(&nodes[..binding.len()], pairs, &sums);
+                        acc.add_point(&b.factors, &b.pairs, &sums);
                     }
                     for (k, v) in r2.into_iter().enumerate() {
                         if let Some(v) = v {
@@ -421,15 +411,31 @@ impl Problem<'_> {
     }
 }
 
-/// The block ids of the node pairs of one binding, `k (k + 1) / 2 + l` for l ≤ k.
-fn pair_ids(pattern: &Pattern, binding: &[(usize, f64)]) -> Vec<usize> {
-    let mut out = Vec::with_capacity(binding.len() * (binding.len() + 1) / 2);
-    for (k, &(i, _)) in binding.iter().enumerate() {
-        for &(j, _) in &binding[..=k] {
-            out.push(pattern.block(i, j).unwrap_or(0));
+/// What a bound model point's residuals need of the layout: the block ids of its node pairs,
+/// `pairs[k (k + 1) / 2 + l]` for l ≤ k, and its node factors `(k, w_k [x − g_k; 1])` (the
+/// nodes' positions stay put while the solve moves their transforms).
+struct BoundPoint {
+    pairs: Vec<usize>,
+    factors: Vec<(usize, [f64; 4])>,
+}
+
+impl Problem<'_> {
+    fn bound_point(&self, pattern: &Pattern, p: &ModelPoint, binding: &[(usize, f64)]) -> BoundPoint {
+        let mut pairs = Vec::with_capacity(binding.len() * (binding.len() + 1) / 2);
+        for (k, &(i, _)) in binding.iter().enumerate() {
+            for &(j, _) in &binding[..=k] {
+                pairs.push(pattern.block(i, j).unwrap_or(0));
+            }
         }
+        let factors = binding
+            .iter()
+            .map(|&(k, wk)| {
+                let v = p.x_world_m - self.graph.deformation.nodes[k].position_m;
+                (k, [wk * v.x, wk * v.y, wk * v.z, wk])
+            })
+            .collect();
+        BoundPoint { pairs, factors }
     }
-    out
 }
 
 fn ms(since: std::time::Instant) -> f64 {
