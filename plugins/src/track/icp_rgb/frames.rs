@@ -5,7 +5,6 @@ use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::gray_from_rgb;
 use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
 
-use super::IcpRgbParams;
 use crate::common::maps::{GeometryParams, NormalMap, VertexMap, geometry, normal_map, vertex_map};
 use crate::common::pyramid::{half_depth, half_gray};
 
@@ -35,21 +34,6 @@ pub struct Level {
 
 /// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
 pub type DepthPrep = GeometryParams;
-
-impl IcpRgbParams {
-    /// How `icp-rgb` prepares depth for its levels (`frames::live`, `frames::reference`; the
-    /// `deformation` closer builds its levels of a prediction with it too).
-    pub fn depth_prep(&self) -> DepthPrep {
-        DepthPrep {
-            min_m: self.min_depth_m,
-            max_m: self.max_depth_m,
-            radius_px: self.bilateral_radius_px as usize,
-            sigma_px: self.bilateral_sigma_px,
-            sigma_m: self.bilateral_sigma_m,
-            edge_jump_m: self.edge_jump_m,
-        }
-    }
-}
 
 fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
     let (w, h) = g.size();

@@ -156,6 +156,20 @@ capsule_slam_framework::plugin_params! {
     }
 }
 
+impl IcpRgbParams {
+    /// How depth is prepared for the levels (`frames::live`, `frames::reference`).
+    pub fn depth_prep(&self) -> DepthPrep {
+        DepthPrep {
+            min_m: self.min_depth_m,
+            max_m: self.max_depth_m,
+            radius_px: self.bilateral_radius_px as usize,
+            sigma_px: self.bilateral_sigma_px,
+            sigma_m: self.bilateral_sigma_m,
+            edge_jump_m: self.edge_jump_m,
+        }
+    }
+}
+
 /// The joint ICP + photometric tracker.
 pub struct IcpRgb {
     params: IcpRgbParams,
@@ -224,10 +238,6 @@ impl IcpRgb {
         Ok(Self { light, missing, ..Self::new(params) })
     }
 
-    fn prep(&self) -> DepthPrep {
-        self.params.depth_prep()
-    }
-
     /// The ICP noise scale, loss residual and loss inlier share for a depth source.
     fn depth_noise(&self, source: DepthSource) -> DepthNoise {
         let p = &self.params;
@@ -286,7 +296,7 @@ impl IcpRgb {
         let cam = ctx.rig.camera();
         // The photometric term relights images as the camera took them: a fall-off a
         // preprocessor divided out goes back in (`relight.rs`), by a table kept per camera.
-        let prep = self.prep();
+        let prep = self.params.depth_prep();
         let undivide = Undivide::kept(&mut self.undivide, self.light.as_ref(), frame.photometry.divided, cam);
         let restore = undivide.map(|u| move |g: GrayF32| u.apply(g));
         let live = frames::live(frame, cam, LEVELS, &prep, restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
@@ -337,7 +347,7 @@ impl IcpRgb {
         ctx: &mut Context,
     ) -> Result<(TrackResult, Option<f64>), StageError> {
         let cam = ctx.rig.camera();
-        let prep = self.prep();
+        let prep = self.params.depth_prep();
         let prior = match self.params.motion_model {
             MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
             MotionModel::None => Iso3::identity(),

@@ -75,7 +75,7 @@ fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::f
     let t = tracker(IcpRgbParams::default(), &ph);
     let (a, mut b) = (rgbd(&ph, 60), rgbd(&ph, 61));
     b.depth_sigma_m = sigma_live_m.map(|s| capsule_slam_framework::DepthMap::from_fn(b.depth_m.width(), b.depth_m.height(), |_, _| [s]));
-    let prep = t.prep();
+    let prep = t.params.depth_prep();
     let previous = super::frames::live(&a, &ph.camera, 3, &prep, None);
     let reference = super::frames::reference(None, previous.first(), &ph.camera, 3, &prep).unwrap();
     (super::frames::live(&b, &ph.camera, 3, &prep, None), reference)
@@ -199,7 +199,7 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let t = tracker(IcpRgbParams::default(), &ph);
     let (a, b) = (rgbd(&ph, 100), rgbd(&ph, 112));
     let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
-    let prep = t.prep();
+    let prep = t.params.depth_prep();
     let previous = super::frames::live(&a, &ph.camera, 3, &prep, None);
     let live = super::frames::live(&b, &ph.camera, 3, &prep, None);
     let w = photometric_weights();
@@ -247,7 +247,7 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
         }
         let r: Option<&dyn Fn(capsule_slam_framework::GrayF32) -> capsule_slam_framework::GrayF32> = if divided { Some(&restore) } else { None };
         let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
-        (super::frames::live(&a, &ph.camera, 3, &t.prep(), r), super::frames::live(&b, &ph.camera, 3, &t.prep(), r), t_ref_live)
+        (super::frames::live(&a, &ph.camera, 3, &t.params.depth_prep(), r), super::frames::live(&b, &ph.camera, 3, &t.params.depth_prep(), r), t_ref_live)
     };
     let (raw, restored) = (pyramids(false), pyramids(true));
     // The restored intensities are the raw ones to within the 8-bit rounding, scaled.
