@@ -161,6 +161,9 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
             p95 * 1e3,
             EvalOptions::default().live_window_frames
         );
+        if let Some(local) = summary.metrics.get("live_surface_local_rmse_m") {
+            println!("                  {:.3} mm RMSE aligned on the poses of those frames alone (without the drift before them)", local * 1e3);
+        }
     }
     if let (Some(e), Some(n), Some(t)) =
         (summary.metrics.get("warp_error_rmse_m"), summary.metrics.get("warp_error_normal_rmse_m"), summary.metrics.get("warp_true_rms_m"))

@@ -50,6 +50,12 @@ fn the_live_surface_of_an_oracle_run_lies_on_the_wall_and_a_moving_wall_shows_in
     let r = live(&wave, "live_surface_rmse_m");
     assert!(r > 5.0 * live(&still, "live_surface_rmse_m") && r < 0.004, "live surface RMSE {r}");
     assert!(live(&wave, "live_surface_p95_m") >= live(&wave, "live_surface_median_m"));
+    // At the true poses the alignment on the window's poses alone is the global one (identity):
+    // the two figures agree.
+    for s in [&still, &wave] {
+        let (global, local) = (live(s, "live_surface_rmse_m"), live(s, "live_surface_local_rmse_m"));
+        assert!((global - local).abs() < 1e-6, "global {global}, window-aligned {local}");
+    }
 
     // The warp error: a tracker that never warps the map has its whole error in the wall's true
     // motion, which is zero on the still wall and up to twice the wave on the moving one.

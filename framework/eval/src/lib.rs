@@ -104,6 +104,29 @@ pub fn align_trajectory(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f6
     umeyama_poses(&e, &g, with_scale)
 }
 
+/// The alignment of `est` onto `gt` fitted to the last `last_n` matched poses alone (a local
+/// alignment, where [`align_trajectory`] is global): each pose enters as its centre and the
+/// points `reach_m` along its three axes, so its orientation counts and a short, straight stretch
+/// is still determined. With `with_scale` the estimate's axis points are `reach_m / s` along, s
+/// the global Sim(3) scale (a monocular estimate's metre is not the truth's). A map fused along
+/// a drifting trajectory is judged by it without the drift before the window: the live surface
+/// error under this alignment is how well the map follows the wall near the camera.
+pub fn align_recent(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64, with_scale: bool, last_n: usize, reach_m: f64) -> Option<Similarity> {
+    let pairs = associate(est, gt, tolerance_s);
+    let recent = &pairs[pairs.len().saturating_sub(last_n)..];
+    if recent.is_empty() {
+        return None;
+    }
+    let est_reach_m = if with_scale { reach_m / align_trajectory(est, gt, tolerance_s, true)?.scale } else { reach_m };
+    let frame = |p: &Iso3, reach: f64| -> [Point3<f64>; 4] {
+        let c = Point3::from(p.translation.vector);
+        [c, c + p.rotation * nalgebra::Vector3::x() * reach, c + p.rotation * nalgebra::Vector3::y() * reach, c + p.rotation * nalgebra::Vector3::z() * reach]
+    };
+    let src: Vec<Point3<f64>> = recent.iter().flat_map(|(e, _)| frame(&e.t_world_cam, est_reach_m)).collect();
+    let dst: Vec<Point3<f64>> = recent.iter().flat_map(|(_, g)| frame(&g.t_world_cam, reach_m)).collect();
+    umeyama(&src, &dst, with_scale)
+}
+
 /// ATE after aligning the estimated positions to the ground truth with Umeyama's method, with
 /// scale (Sim(3), for monocular runs) or without (SE(3)). `None` with fewer than three matched
 /// pairs.
@@ -151,6 +174,47 @@ mod tests {
                 StampedPose { timestamp_s: s, t_world_cam: exp_se3(&Vector6::new(0.05 * s.sin(), 0.03 * s, 0.02 * (2.0 * s).cos(), 0.1 * s, 0.2, -0.1 * s)) }
             })
             .collect()
+    }
+
+    /// The estimate: the truth moved by `early` up to frame `split`, by `late` after it.
+    fn two_offsets(gt: &[StampedPose], split: usize, early: &Iso3, late: &Iso3) -> Vec<StampedPose> {
+        gt.iter()
+            .enumerate()
+            .map(|(i, p)| StampedPose { timestamp_s: p.timestamp_s, t_world_cam: if i < split { early } else { late } * p.t_world_cam })
+            .collect()
+    }
+
+    #[test]
+    fn the_recent_alignment_fits_the_last_poses_alone() {
+        let gt = traj(60);
+        let early = exp_se3(&Vector6::new(0.004, -0.002, 0.003, 0.05, 0.0, -0.03));
+        let late = exp_se3(&Vector6::new(-0.001, 0.002, 0.0, 0.0, 0.02, 0.01));
+        let est = two_offsets(&gt, 40, &early, &late);
+        // Fitted on the last 20 poses (all moved by `late`): exactly late⁻¹.
+        let a = align_recent(&est, &gt, 0.01, false, 20, 0.01).unwrap();
+        let want = late.inverse();
+        assert!((a.rotation - want.rotation.to_rotation_matrix().matrix()).norm() < 1e-9, "{a:?}");
+        assert!((a.translation - want.translation.vector).norm() < 1e-9, "{a:?}");
+        // Over 30 poses the early offset enters and the fit is no longer exact.
+        let b = align_recent(&est, &gt, 0.01, false, 30, 0.01).unwrap();
+        assert!((b.translation - want.translation.vector).norm() > 1e-5, "{b:?}");
+        // One pose is enough (its centre and axes), and nothing matched is none.
+        assert!(align_recent(&est, &gt, 0.01, false, 1, 0.01).is_some());
+        assert!(align_recent(&est, &[], 0.01, false, 20, 0.01).is_none());
+    }
+
+    #[test]
+    fn the_recent_alignment_with_scale_undoes_a_monocular_scale() {
+        let gt = traj(60);
+        let est: Vec<StampedPose> = gt
+            .iter()
+            .map(|p| StampedPose {
+                timestamp_s: p.timestamp_s,
+                t_world_cam: Iso3::from_parts((2.5 * p.t_world_cam.translation.vector).into(), p.t_world_cam.rotation),
+            })
+            .collect();
+        let a = align_recent(&est, &gt, 0.01, true, 10, 0.01).unwrap();
+        assert!((a.scale - 0.4).abs() < 1e-9 && a.translation.norm() < 1e-9, "{a:?}");
     }
 
     proptest! {

@@ -260,6 +260,9 @@ impl Nonrigid {
             Fit::Solved { t_world_cam, warp, outcome, nodes, points } => {
                 self.probe = Probe::default();
                 ctx.count("nonrigid_nodes", nodes as f64);
+                let moved = rigid.t_world_cam.inverse() * t_world_cam;
+                ctx.count("nonrigid_camera_step_mm", moved.translation.vector.norm() * 1e3);
+                ctx.count("nonrigid_camera_step_deg", moved.rotation.angle().to_degrees());
                 Gains::of(&outcome).count(ctx);
                 ctx.count("nonrigid_points", points as f64);
                 ctx.count("nonrigid_iterations", outcome.iterations as f64);
