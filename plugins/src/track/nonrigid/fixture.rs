@@ -107,6 +107,7 @@ impl SolverCase {
             camera: super::CameraMode::Fixed,
             // Three iterations, as the solver table of docs/results/nonrigid.md was measured.
             iterations: 3,
+            step_tolerance_m: 0.0,
             ..Default::default()
         };
         let mut tracker = Nonrigid::new(params)?;

@@ -63,6 +63,9 @@ pub struct Weights {
     pub sigma_camera_rad: f64,
     /// Gauss-Newton iterations.
     pub iterations: usize,
+    /// Stop once no node's and not the camera's translation moves by more than this in an
+    /// iteration, metres (0: never early).
+    pub step_tolerance_m: f64,
     /// Model points every this many pixels (a depth error correlated over more pixels counts
     /// once per correlated patch, as in `icp-rgb`).
     pub point_stride_px: f64,
@@ -240,7 +243,7 @@ impl<'a> Problem<'a> {
             }
             out.iterations += 1;
             let norm = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if norm < 1e-9 {
+            if norm < 1e-9 || largest_translation_m(&step, nodes, self.camera) < w.step_tolerance_m {
                 break;
             }
         }
@@ -436,6 +439,13 @@ impl Problem<'_> {
             .collect();
         BoundPoint { pairs, factors }
     }
+}
+
+/// The largest translation a Gauss-Newton step gives a node or the camera, metres.
+fn largest_translation_m(step: &[f64], nodes: usize, camera: bool) -> f64 {
+    let at = |i: usize| Vector3::new(step[i], step[i + 1], step[i + 2]).norm();
+    let node = (0..nodes).map(|j| at(UNKNOWNS * j + 9)).fold(0.0, f64::max);
+    if camera { node.max(at(UNKNOWNS * nodes)) } else { node }
 }
 
 fn ms(since: std::time::Instant) -> f64 {

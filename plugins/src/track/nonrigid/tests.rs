@@ -53,6 +53,31 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
     }
 }
 
+#[test]
+fn the_iterations_stop_once_a_step_moves_nothing_by_more_than_the_tolerance() {
+    let amp = 0.0005;
+    let pts = model(amp);
+    let points: Vec<ModelPoint> = pts.iter().map(|p| p.0).collect();
+    let live = level(amp);
+    let fit = |tolerance_m: f64| {
+        let mut t = tracker(CameraMode::Joint);
+        t.params.iterations = 20;
+        t.params.step_tolerance_m = tolerance_m;
+        // Model selection is not under test: a single step's gain is kept too.
+        (t.params.min_rms_gain, t.params.min_evidence) = (0.0, 0.0);
+        t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+        let Fit::Solved { warp, outcome, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("tolerance {tolerance_m}: fell back") };
+        (outcome.iterations, warp_error(&warp, &pts))
+    };
+    let (all, exact) = fit(0.0);
+    let (early, close) = fit(5e-6);
+    assert_eq!(all, 20, "without a tolerance every iteration runs");
+    assert!((2..all).contains(&early), "5 µm stops after {early} iterations");
+    // What the skipped iterations would still have moved is below the tolerance's order.
+    assert!((close - exact).abs() < 5e-6 && close < 0.1e-3, "warp error {close} m with the tolerance, {exact} m without");
+    assert_eq!(fit(1.0).0, 1, "a tolerance of a metre stops after the first step");
+}
+
 /// The dense symmetric matrix of a pattern's lower triangle.
 fn dense(pattern: &super::system::Pattern) -> nalgebra::DMatrix<f64> {
     let n = pattern.unknowns();
