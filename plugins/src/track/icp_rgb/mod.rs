@@ -186,6 +186,26 @@ pub struct IcpRgb {
     undivide: Option<Undivide>,
 }
 
+/// The light model `light_file` names (relative to the input folder), or none with the reason
+/// when the file does not exist; a file that exists but does not parse is an error.
+fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<LightModel>, Option<String>), StageError> {
+    if light_file.is_empty() {
+        return Ok((None, None));
+    }
+    let path = env.input_file(light_file);
+    if !path.exists() {
+        let why = format!(
+            "no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
+            path.display()
+        );
+        return Ok((None, Some(why)));
+    }
+    let light = capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
+        StageError::invalid_input(format!("icp-rgb: light_file: {e}; fix the file, or set plugins.icp-rgb.light_file = \"\" to compare intensities unlit"))
+    })?;
+    Ok((Some(light), None))
+}
+
 /// How far the frame's depth is trusted, by its source (measured or estimated).
 struct DepthNoise {
     sigma_icp_m: f64,
@@ -200,7 +220,7 @@ impl Plugin for IcpRgb {
 
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
-        let (light, missing) = relight::load_light(&params.light_file, env)?;
+        let (light, missing) = load_light(&params.light_file, env)?;
         Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None })
     }
 }
@@ -214,7 +234,7 @@ impl IcpRgb {
     /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
     /// [`Plugin::build`] loads it.
     pub fn with_env(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
-        let (light, missing) = relight::load_light(&params.light_file, env)?;
+        let (light, missing) = load_light(&params.light_file, env)?;
         Ok(Self { light, missing, ..Self::new(params) })
     }
 
@@ -287,15 +307,6 @@ impl IcpRgb {
         live
     }
 
-    /// The constant-velocity prior of the next frame (previous camera → current camera; the
-    /// identity without a motion model or history).
-    pub(crate) fn motion_prior(&self) -> Iso3 {
-        match self.params.motion_model {
-            MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
-            MotionModel::None => Iso3::identity(),
-        }
-    }
-
     /// Replaces the last relative motion (previous camera → current camera), the
     /// constant-velocity prior of the next frame, when a caller refined the pose.
     pub(crate) fn set_last_motion(&mut self, motion: Iso3) {
@@ -337,7 +348,10 @@ impl IcpRgb {
     ) -> Result<(TrackResult, Option<f64>), StageError> {
         let cam = ctx.rig.camera();
         let prep = self.params.depth_prep();
-        let prior = self.motion_prior();
+        let prior = match self.params.motion_model {
+            MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
+            MotionModel::None => Iso3::identity(),
+        };
         let model = if self.params.mode == Mode::FrameToModel { model } else { None };
         let clock = std::time::Instant::now();
         let reference = frames::reference(model, self.previous.as_ref().and_then(|p| p.first()), cam, LEVELS, &prep);

@@ -17,8 +17,7 @@
 use capsule_slam_framework::frame::DividedFalloff;
 use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::light::vignetting::light_falloff;
-use capsule_slam_framework::registry::BuildEnv;
-use capsule_slam_framework::{GrayF32, Iso3, PinholeCamera, StageError};
+use capsule_slam_framework::{GrayF32, Iso3, PinholeCamera};
 use nalgebra::{Point3, Vector3};
 
 use super::frames::Level;
@@ -115,24 +114,4 @@ impl<'a> Relighter<'a> {
         let r_ref = self.response(cam, uv_ref, &Point3::from(*s), &(t_ref_live.rotation * nl));
         (a > 0.0 && r_ref > 0.0).then(|| self.encode(a * r_ref))
     }
-}
-
-/// The light model `light_file` names (relative to the input folder), or none with the reason
-/// when the file does not exist; a file that exists but does not parse is an error.
-pub(super) fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<LightModel>, Option<String>), StageError> {
-    if light_file.is_empty() {
-        return Ok((None, None));
-    }
-    let path = env.input_file(light_file);
-    if !path.exists() {
-        let why = format!(
-            "no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
-            path.display()
-        );
-        return Ok((None, Some(why)));
-    }
-    let light = capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
-        StageError::invalid_input(format!("icp-rgb: light_file: {e}; fix the file, or set plugins.icp-rgb.light_file = \"\" to compare intensities unlit"))
-    })?;
-    Ok((Some(light), None))
 }

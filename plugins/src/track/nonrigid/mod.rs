@@ -6,9 +6,7 @@
 //! Per frame:
 //! 1. a rigid start: `icp-rgb` (every option of it, under `[plugins.nonrigid.rigid]`) against the
 //!    prediction of the map, which the previous frames' warps keep at the wall's last shape;
-//!    its loss detection is this tracker's; a rigid start whose Gauss-Newton climbed its own
-//!    point-to-plane cost above the motion prior's is replaced by the prior
-//!    (`max_rigid_rms_ratio`);
+//!    its loss detection is this tracker's;
 //! 2. embedded-deformation nodes cover the predicted surface (`node_spacing_m`, `nodes.rs`); the
 //!    prediction's pixels on a grid are bound to their k nearest nodes within `reach_m`;
 //! 3. a joint Gauss-Newton solve of the camera and the nodes' affine increments (`solve.rs`):
@@ -148,14 +146,7 @@ impl Tracker for Nonrigid {
             _ => Vec::new(),
         };
         let ms_points = clock.elapsed().as_secs_f64() * 1e3;
-        let prior = t_world_prev * self.rigid.motion_prior();
-        let guard = self.params.max_rigid_rms_ratio > 0.0 && warps;
-        let (mut rigid, rms_at_prior) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, guard, ctx)?;
-        if let Some(why) = rejected_rigid_start(&rigid, rms_at_prior, self.params.max_rigid_rms_ratio) {
-            ctx.warn(why);
-            ctx.count("nonrigid_rigid_start_rejected", 1.0);
-            rigid.t_world_cam = prior;
-        }
+        let (rigid, _) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?;
         if model.is_none() || !warps || rigid.status == TrackStatus::Lost {
             return Ok(rigid);
         }
@@ -403,21 +394,6 @@ impl Nonrigid {
         self.nodes.rebin();
         Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome })
     }
-}
-
-/// Why a tracked rigid start is to give way to its motion prior, if it is: its Gauss-Newton
-/// ended with a point-to-plane RMS above `max_ratio` times the RMS at the prior, `rms_at_prior_m`
-/// (it climbed its own cost). Never without that RMS or for a lost frame.
-fn rejected_rigid_start(rigid: &TrackResult, rms_at_prior_m: Option<f64>, max_ratio: f64) -> Option<String> {
-    let r0 = rms_at_prior_m?;
-    (rigid.status == TrackStatus::Tracked && rigid.residual_rms > max_ratio * r0).then(|| {
-        format!(
-            "the rigid start ended at {:.3} mm point-to-plane RMS, {:.2}× its motion prior's {:.3} mm (max_rigid_rms_ratio {max_ratio}): the prior starts the joint solve",
-            rigid.residual_rms * 1e3,
-            rigid.residual_rms / r0,
-            r0 * 1e3
-        )
-    })
 }
 
 /// The gain `min_rms_gain` is tested on: the mean of the last `window` finite gains, `gain`

@@ -57,12 +57,6 @@ capsule_slam_framework::plugin_params! {
         /// seeds), slightly worse on presets 2 and 7, `docs/results/nonrigid.md`; each costs
         /// about 5 ms on a moving wall.
         pub iterations: u32 = 8; unit = "-"; range = 1.0..=50.0;
-        /// Reject the rigid start when its Gauss-Newton ends with a point-to-plane RMS above this
-        /// multiple of the RMS at its motion prior (it climbed its own cost: on a deforming
-        /// phantom 1.07 once in 300 frames, ending 4.6 mm and 6.9° off, against a median of
-        /// 0.73); the prior pose is then the joint solve's start, with a warning (0: off).
-        /// Measured in `docs/results/nonrigid.md`.
-        pub max_rigid_rms_ratio: f64 = 1.0; unit = "-"; range = 0.0..=1.0e3;
         /// Stop the Gauss-Newton iterations early once an iteration moves no node's translation
         /// and not the camera's by more than this (0: always run `iterations`). 5 µm, a
         /// twentieth of the phantom's depth noise σ, cut the 8 iterations to 6 on average and

@@ -315,16 +315,3 @@ fn a_clearly_still_wall_is_solved_on_every_nth_frame_only() {
     // Every frame when `still_probe_every_frames` = 1.
     assert!((0..10).all(|_| !probe.skips(1)));
 }
-
-#[test]
-fn a_rigid_start_that_climbed_its_cost_gives_way_to_the_prior() {
-    let rigid = |rms_m: f64, status: TrackStatus| TrackResult { residual_rms: rms_m, status, ..TrackResult::tracked(Iso3::identity()) };
-    // Above the prior's RMS: rejected, and the warning names the figures and the parameter.
-    let why = super::rejected_rigid_start(&rigid(0.00107, TrackStatus::Tracked), Some(0.001), 1.0).expect("rejected");
-    assert!(why.contains("1.07×") && why.contains("max_rigid_rms_ratio"), "{why}");
-    // At or below it, below a looser ratio, without the prior's RMS, or lost: kept.
-    assert!(super::rejected_rigid_start(&rigid(0.00073, TrackStatus::Tracked), Some(0.001), 1.0).is_none());
-    assert!(super::rejected_rigid_start(&rigid(0.00107, TrackStatus::Tracked), Some(0.001), 1.1).is_none());
-    assert!(super::rejected_rigid_start(&rigid(0.00107, TrackStatus::Tracked), None, 1.0).is_none());
-    assert!(super::rejected_rigid_start(&rigid(0.00107, TrackStatus::Lost), Some(0.001), 1.0).is_none());
-}
