@@ -107,24 +107,25 @@ pub fn align_trajectory(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f6
 /// The alignment of `est` onto `gt` fitted to the last `last_n` matched poses alone (a local
 /// alignment, where [`align_trajectory`] is global): each pose enters as its centre and the
 /// points `reach_m` along its three axes, so its orientation counts and a short, straight stretch
-/// is still determined. With `with_scale` the estimate's axis points are `reach_m / s` along, s
-/// the global Sim(3) scale (a monocular estimate's metre is not the truth's). A map fused along
-/// a drifting trajectory is judged by it without the drift before the window: the live surface
-/// error under this alignment is how well the map follows the wall near the camera.
-pub fn align_recent(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64, with_scale: bool, last_n: usize, reach_m: f64) -> Option<Similarity> {
+/// is still determined. With `global_scale` = Some(s), the scale of the global Sim(3) alignment
+/// (a monocular estimate's metre is not the truth's), the fit has a scale too and the estimate's
+/// axis points are `reach_m / s` along. A map fused along a drifting trajectory is judged by it
+/// without the drift before the window: the live surface error under this alignment is how well
+/// the map follows the wall near the camera.
+pub fn align_recent(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64, global_scale: Option<f64>, last_n: usize, reach_m: f64) -> Option<Similarity> {
     let pairs = associate(est, gt, tolerance_s);
     let recent = &pairs[pairs.len().saturating_sub(last_n)..];
     if recent.is_empty() {
         return None;
     }
-    let est_reach_m = if with_scale { reach_m / align_trajectory(est, gt, tolerance_s, true)?.scale } else { reach_m };
+    let est_reach_m = global_scale.map_or(reach_m, |s| reach_m / s);
     let frame = |p: &Iso3, reach: f64| -> [Point3<f64>; 4] {
         let c = Point3::from(p.translation.vector);
         [c, c + p.rotation * nalgebra::Vector3::x() * reach, c + p.rotation * nalgebra::Vector3::y() * reach, c + p.rotation * nalgebra::Vector3::z() * reach]
     };
     let src: Vec<Point3<f64>> = recent.iter().flat_map(|(e, _)| frame(&e.t_world_cam, est_reach_m)).collect();
     let dst: Vec<Point3<f64>> = recent.iter().flat_map(|(_, g)| frame(&g.t_world_cam, reach_m)).collect();
-    umeyama(&src, &dst, with_scale)
+    umeyama(&src, &dst, global_scale.is_some())
 }
 
 /// ATE after aligning the estimated positions to the ground truth with Umeyama's method, with
@@ -191,16 +192,16 @@ mod tests {
         let late = exp_se3(&Vector6::new(-0.001, 0.002, 0.0, 0.0, 0.02, 0.01));
         let est = two_offsets(&gt, 40, &early, &late);
         // Fitted on the last 20 poses (all moved by `late`): exactly late⁻¹.
-        let a = align_recent(&est, &gt, 0.01, false, 20, 0.01).unwrap();
+        let a = align_recent(&est, &gt, 0.01, None, 20, 0.01).unwrap();
         let want = late.inverse();
         assert!((a.rotation - want.rotation.to_rotation_matrix().matrix()).norm() < 1e-9, "{a:?}");
         assert!((a.translation - want.translation.vector).norm() < 1e-9, "{a:?}");
         // Over 30 poses the early offset enters and the fit is no longer exact.
-        let b = align_recent(&est, &gt, 0.01, false, 30, 0.01).unwrap();
+        let b = align_recent(&est, &gt, 0.01, None, 30, 0.01).unwrap();
         assert!((b.translation - want.translation.vector).norm() > 1e-5, "{b:?}");
         // One pose is enough (its centre and axes), and nothing matched is none.
-        assert!(align_recent(&est, &gt, 0.01, false, 1, 0.01).is_some());
-        assert!(align_recent(&est, &[], 0.01, false, 20, 0.01).is_none());
+        assert!(align_recent(&est, &gt, 0.01, None, 1, 0.01).is_some());
+        assert!(align_recent(&est, &[], 0.01, None, 20, 0.01).is_none());
     }
 
     #[test]
@@ -213,7 +214,8 @@ mod tests {
                 t_world_cam: Iso3::from_parts((2.5 * p.t_world_cam.translation.vector).into(), p.t_world_cam.rotation),
             })
             .collect();
-        let a = align_recent(&est, &gt, 0.01, true, 10, 0.01).unwrap();
+        let global = align_trajectory(&est, &gt, 0.01, true).unwrap();
+        let a = align_recent(&est, &gt, 0.01, Some(global.scale), 10, 0.01).unwrap();
         assert!((a.scale - 0.4).abs() < 1e-9 && a.translation.norm() < 1e-9, "{a:?}");
     }
 

@@ -157,7 +157,9 @@ pub fn evaluate_live(
     }
     // The same surfels under an alignment fitted to the window's poses alone: what is left is the
     // map's own lag behind the wall, without the drift accumulated before the window.
-    let Some(local) = align_recent(est, gt, opts.tolerance_s, opts.sim3, opts.live_window_frames as usize, LOCAL_REACH_M) else { return m };
+    let Some(local) = align_recent(est, gt, opts.tolerance_s, opts.sim3.then_some(align.scale), opts.live_window_frames as usize, LOCAL_REACH_M) else {
+        return m;
+    };
     if let Some(e) = live_surface_error(map, &local, truth_now, last_frame, opts.live_window_frames, opts.surface.plane_radius_m) {
         m.insert("live_surface_local_rmse_m".into(), e.rmse_m);
         m.insert("live_surface_local_median_m".into(), e.median_m);
