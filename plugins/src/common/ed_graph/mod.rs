@@ -1,6 +1,8 @@
 //! The embedded deformation graph (Sumner, Schmid and Pauly 2007) and its optimisation, as
 //! ElasticFusion builds it (Whelan et al. 2016, Sec. 4; Sumner et al. 2007): 12 unknowns per node (the 3×3
-//! affine R, column-major, and the translation t), the energy
+//! affine R, column-major, and the translation t; [`NodeModel::Affine`]), or 6 for a rigid node
+//! ([`NodeModel::Twist`]: t and a left rotation increment, R ← exp(ω) R, as DynamicFusion's and
+//! SurfelWarp's nodes; R stays a rotation, so `E_rot` is zero and has no rows), the energy
 //!
 //! `E = w_rot E_rot + w_reg E_reg + w_con E_con`
 //!
@@ -17,7 +19,7 @@
 //! analysis once per graph, a numeric factorisation per iteration.
 
 use faer::sparse::{SparseColMat, Triplet};
-use nalgebra::{Matrix3, Point3, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 
 use capsule_slam_framework::StageError;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode};
@@ -28,8 +30,66 @@ use crate::common::sparse_llt::SparseLlt;
 /// `cargo bench -p capsule-slam-benches --bench deformation`).
 const SIMPLICIAL: bool = false;
 
-/// Unknowns per node.
-pub const UNKNOWNS: usize = 12;
+/// How a node's transform is parametrised.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum NodeModel {
+    /// Sumner's affine node: R's 9 entries (column-major), then t; R held near a rotation by
+    /// `E_rot` (ElasticFusion's deformation graph).
+    #[default]
+    Affine,
+    /// A rigid node: t, then the rotation increment ω of `R ← exp(ω) R` (DynamicFusion's and
+    /// SurfelWarp's warp fields). Half the unknowns: a quarter of the normal-equation entries.
+    Twist,
+}
+
+impl NodeModel {
+    /// Unknowns per node.
+    pub const fn unknowns(self) -> usize {
+        match self {
+            Self::Affine => 12,
+            Self::Twist => 6,
+        }
+    }
+
+    /// Where the translation starts among a node's unknowns.
+    pub const fn translation(self) -> usize {
+        match self {
+            Self::Affine => 9,
+            Self::Twist => 0,
+        }
+    }
+
+    /// Pushes the Jacobian entries of component `axis` of `c · (R_i v + t_i)` with respect to
+    /// node i's unknowns (R_i its current rotation part): for the affine node
+    /// `∂/∂R[axis][col] = c v[col]`; for the twist `∂/∂ω = −c [R_i v]×` (row `axis`).
+    pub fn push_entries(self, row: &mut Vec<(usize, f64)>, i: usize, c: f64, r_i: &Matrix3<f64>, v: &Vector3<f64>, axis: usize) {
+        let base = self.unknowns() * i;
+        match self {
+            Self::Affine => row.extend((0..3).map(|col| (base + 3 * col + axis, c * v[col]))),
+            Self::Twist => {
+                let u = r_i * v;
+                let minus_skew_row = [[0.0, u.z, -u.y], [-u.z, 0.0, u.x], [u.y, -u.x, 0.0]][axis];
+                row.extend((0..3).map(|b| (base + 3 + b, c * minus_skew_row[b])));
+            }
+        }
+        row.push((base + self.translation() + axis, c));
+    }
+
+    /// Applies `scale ·` a node's step (its unknowns in this model's order) to `node`.
+    pub fn shift(self, node: &mut DeformationNode, x: &[f64], scale: f64) {
+        match self {
+            Self::Affine => {
+                node.rotation += Matrix3::from_column_slice(&x[..9]) * scale;
+                node.translation_m += Vector3::new(x[9], x[10], x[11]) * scale;
+            }
+            Self::Twist => {
+                node.translation_m += Vector3::new(x[0], x[1], x[2]) * scale;
+                node.rotation = Rotation3::new(Vector3::new(x[3], x[4], x[5]) * scale).matrix() * node.rotation;
+            }
+        }
+    }
+}
 
 /// A point constraint: the warp of `source_m` (a point of time `time`) should land on
 /// `target_m`. A pin has `target_m == source_m`.
@@ -73,6 +133,8 @@ pub struct Graph {
     pub neighbours: Vec<Vec<usize>>,
     /// Nodes held at the identity (not optimised).
     pub fixed: Vec<bool>,
+    /// The nodes' parametrisation ([`NodeModel::Affine`] unless [`Graph::with_model`] says).
+    pub model: NodeModel,
     constraints: Vec<(Constraint, Vec<(usize, f64)>)>,
 }
 
@@ -121,7 +183,18 @@ impl Graph {
                 }
             })
             .collect();
-        Self { deformation, neighbours, fixed: vec![false; n], constraints: Vec::new() }
+        Self { deformation, neighbours, fixed: vec![false; n], model: NodeModel::Affine, constraints: Vec::new() }
+    }
+
+    /// The graph with its nodes parametrised by `model`.
+    pub fn with_model(mut self, model: NodeModel) -> Self {
+        self.model = model;
+        self
+    }
+
+    /// Unknowns in all.
+    pub fn unknowns(&self) -> usize {
+        self.model.unknowns() * self.deformation.nodes.len()
     }
 
     /// Holds node `i` at the identity: it moves the points it influences not at all and is no
@@ -147,8 +220,8 @@ impl Graph {
         self.constraints.len()
     }
 
-    /// Every residual, weighted (`√w · r`), in a fixed order: per node E_rot (6), per directed
-    /// edge E_reg (3), per constraint E_con (3).
+    /// Every residual, weighted (`√w · r`), in a fixed order: per node E_rot (6; affine nodes
+    /// only), per directed edge E_reg (3), per constraint E_con (3).
     pub fn residuals(&self, w: &GraphWeights) -> Vec<f64> {
         let mut out = Vec::new();
         self.visit(w, |r, _| out.push(r));
@@ -163,19 +236,20 @@ impl Graph {
     }
 
     /// Calls `f(r, jacobian row)` for every weighted residual; the row lists (unknown index,
-    /// ∂r/∂x) with unknown `12 j + m`: m < 9 the entries of R_j column-major, m ≥ 9 t_j. Fixed
+    /// ∂r/∂x) with unknown `u j + m`, u the model's unknowns per node: for the affine node m < 9
+    /// the entries of R_j column-major, m ≥ 9 t_j; for the twist m < 3 t_j, m ≥ 3 ω_j. Fixed
     /// nodes have no E_rot rows and no entries.
     pub fn visit(&self, w: &GraphWeights, mut f: impl FnMut(f64, &[(usize, f64)])) {
         let nodes = &self.deformation.nodes;
-        let fixed = &self.fixed;
+        let (fixed, model) = (&self.fixed, self.model);
         let (s_rot, s_reg, s_con) = (w.rot.sqrt(), w.reg.sqrt() / w.length_unit_m, w.con.sqrt() / w.length_unit_m);
         let mut row: Vec<(usize, f64)> = Vec::with_capacity(64);
         for (j, node) in nodes.iter().enumerate() {
-            if fixed[j] {
+            if fixed[j] || model == NodeModel::Twist {
                 continue;
             }
             let c = [node.rotation.column(0).into_owned(), node.rotation.column(1).into_owned(), node.rotation.column(2).into_owned()];
-            let base = UNKNOWNS * j;
+            let base = model.unknowns() * j;
             for (a, b) in [(0, 1), (0, 2), (1, 2)] {
                 row.clear();
                 for (d, (cb, ca)) in c[b].iter().zip(c[a].iter()).enumerate() {
@@ -203,13 +277,10 @@ impl Graph {
                 for axis in 0..3 {
                     row.clear();
                     if !fixed[j] {
-                        for col in 0..3 {
-                            row.push((UNKNOWNS * j + 3 * col + axis, s_reg * d[col]));
-                        }
-                        row.push((UNKNOWNS * j + 9 + axis, s_reg));
+                        model.push_entries(&mut row, j, s_reg, &node.rotation, &d, axis);
                     }
                     if !fixed[n] {
-                        row.push((UNKNOWNS * n + 9 + axis, -s_reg));
+                        row.push((model.unknowns() * n + model.translation() + axis, -s_reg));
                     }
                     f(s_reg * e[axis], &row);
                 }
@@ -220,11 +291,7 @@ impl Graph {
             for axis in 0..3 {
                 row.clear();
                 for &(i, wi) in infl.iter().filter(|(i, _)| !fixed[*i]) {
-                    let v = c.source_m - nodes[i].position_m;
-                    for col in 0..3 {
-                        row.push((UNKNOWNS * i + 3 * col + axis, s_con * wi * v[col]));
-                    }
-                    row.push((UNKNOWNS * i + 9 + axis, s_con * wi));
+                    model.push_entries(&mut row, i, s_con * wi, &nodes[i].rotation, &(c.source_m - nodes[i].position_m), axis);
                 }
                 f(s_con * e[axis], &row);
             }
@@ -233,10 +300,9 @@ impl Graph {
 
     /// Adds `scale · step` to the unknowns (ordered as in [`Graph::visit`]).
     pub fn shift(&mut self, step: &[f64], scale: f64) {
+        let u = self.model.unknowns();
         for (j, node) in self.deformation.nodes.iter_mut().enumerate() {
-            let x = &step[UNKNOWNS * j..UNKNOWNS * (j + 1)];
-            node.rotation += Matrix3::from_column_slice(&x[..9]) * scale;
-            node.translation_m += Vector3::new(x[9], x[10], x[11]) * scale;
+            self.model.shift(node, &step[u * j..u * (j + 1)], scale);
         }
     }
 
@@ -244,7 +310,7 @@ impl Graph {
     /// halved, up to four times; ElasticFusion keeps it). Returns the energy before and after
     /// and the factorisations run.
     pub fn optimise(&mut self, w: &GraphWeights) -> Result<Solution, StageError> {
-        let n = UNKNOWNS * self.deformation.nodes.len();
+        let n = self.unknowns();
         let before = self.energy(w);
         if n == 0 {
             return Ok(Solution { energy_before: before, energy_after: before, factorisations: 0 });

@@ -2,7 +2,7 @@ use capsule_slam_framework::Iso3;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
-use super::{Constraint, Edges, Graph, GraphWeights, UNKNOWNS, time_neighbours};
+use super::{Constraint, Edges, Graph, GraphWeights, NodeModel, time_neighbours};
 
 /// A 40 × 40 mm sheet of points at z = 30 mm sampled every `step_m`, with times increasing
 /// along x (as a capsule sweeping it would see them).
@@ -35,13 +35,28 @@ fn time_neighbours_follow_elastic_fusion() {
     assert_eq!(time_neighbours(1, 3, 4), vec![0, 2]);
 }
 
+/// A node transform off the identity for node `j` (`f` a phase): an affine R near a rotation
+/// for the affine model, a rotation for the twist.
+fn perturbed(model: NodeModel, f: f64) -> Matrix3<f64> {
+    match model {
+        NodeModel::Affine => Matrix3::identity() + Matrix3::new(f.sin(), 0.1, -0.05, 0.02, f.cos() * 0.1, 0.03, -0.04, 0.01, 0.05) * 0.1,
+        NodeModel::Twist => *nalgebra::Rotation3::new(Vector3::new(f.sin(), 0.3, f.cos()) * 0.05).matrix(),
+    }
+}
+
 #[test]
 fn the_jacobian_matches_finite_differences() {
-    let mut g = graph_on_sheet(0.01, Edges::Time);
+    for model in [NodeModel::Affine, NodeModel::Twist] {
+        jacobian_matches_finite_differences(model);
+    }
+}
+
+fn jacobian_matches_finite_differences(model: NodeModel) {
+    let mut g = graph_on_sheet(0.01, Edges::Time).with_model(model);
     // A non-trivial state: perturb every node.
     for (j, n) in g.deformation.nodes.iter_mut().enumerate() {
         let f = j as f64 * 0.37;
-        n.rotation = Matrix3::identity() + Matrix3::new(f.sin(), 0.1, -0.05, 0.02, f.cos() * 0.1, 0.03, -0.04, 0.01, 0.05) * 0.1;
+        n.rotation = perturbed(model, f);
         n.translation_m = Vector3::new(f.cos(), f.sin(), 0.5) * 1e-3;
     }
     for (i, (p, t)) in sheet(0.007).into_iter().enumerate().step_by(3) {
@@ -49,7 +64,7 @@ fn the_jacobian_matches_finite_differences() {
     }
     let w = GraphWeights::default();
     let r0 = g.residuals(&w);
-    let n_unknowns = UNKNOWNS * g.deformation.nodes.len();
+    let n_unknowns = g.unknowns();
     let mut jac = vec![std::collections::BTreeMap::new(); r0.len()];
     let mut k = 0;
     g.visit(&w, |_, row| {
@@ -71,11 +86,11 @@ fn the_jacobian_matches_finite_differences() {
         for (row, (a, b)) in rp.iter().zip(&rm).enumerate() {
             let numeric = (a - b) / (2.0 * h);
             let analytic = jac[row].get(&u).copied().unwrap_or(0.0);
-            assert!((numeric - analytic).abs() < 1e-5 * (1.0 + numeric.abs()), "residual {row}, unknown {u}: {analytic} vs {numeric}");
+            assert!((numeric - analytic).abs() < 1e-5 * (1.0 + numeric.abs()), "{model:?}: residual {row}, unknown {u}: {analytic} vs {numeric}");
             checked += usize::from(numeric != 0.0);
         }
     }
-    assert!(checked > 100, "{checked} non-zero derivatives checked");
+    assert!(checked > 100, "{model:?}: {checked} non-zero derivatives checked");
 }
 
 #[test]
@@ -93,8 +108,14 @@ fn satisfied_constraints_give_the_identity() {
 
 #[test]
 fn a_smooth_bend_is_recovered_from_sparse_constraints() {
+    for model in [NodeModel::Affine, NodeModel::Twist] {
+        smooth_bend_is_recovered(model);
+    }
+}
+
+fn smooth_bend_is_recovered(model: NodeModel) {
     // Nodes every 5 mm, constraints on a 10 mm grid (25 points of 1681), the bend 2 mm deep.
-    let mut g = graph_on_sheet(0.005, Edges::SpaceInWindow);
+    let mut g = graph_on_sheet(0.005, Edges::SpaceInWindow).with_model(model);
     for (p, t) in sheet(0.01) {
         g.constrain(Constraint { source_m: p, target_m: bend(&p), time: t });
     }
@@ -113,10 +134,13 @@ fn a_smooth_bend_is_recovered_from_sparse_constraints() {
         sum_unwarped += Vector3::z().angle(&truth);
         count += 1;
     }
-    assert!(worst < 0.5e-3, "worst point error {worst} m");
-    // The affine nodes turn the normals part of the way (measured: mean error 0.022 rad
+    assert!(worst < 0.5e-3, "{model:?}: worst point error {worst} m");
+    // The nodes turn the normals part of the way (measured, affine: mean error 0.022 rad
     // against 0.05 unwarped); the regulariser trades the rest for smoothness.
-    assert!(sum_angle < 0.5 * sum_unwarped, "mean normal error {} rad, unwarped {}", sum_angle / count as f64, sum_unwarped / count as f64);
+    assert!(sum_angle < 0.5 * sum_unwarped, "{model:?}: mean normal error {} rad, unwarped {}", sum_angle / count as f64, sum_unwarped / count as f64);
+    if model == NodeModel::Twist {
+        assert!(d.nodes.iter().all(|n| (n.rotation.transpose() * n.rotation - Matrix3::identity()).norm() < 1e-12), "twist nodes stay rotations");
+    }
     // A camera looking at the sheet moves with it.
     let pose = Iso3::from_parts(Vector3::new(0.03, 0.02, 0.03).into(), UnitQuaternion::identity());
     let warped = d.warp_pose(&pose, 30);
@@ -147,17 +171,23 @@ fn fixed_nodes_stay_and_the_free_ones_take_the_bend() {
 
 #[test]
 fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
-    let mut g = graph_on_sheet(0.01, Edges::SpaceInWindow);
+    for model in [NodeModel::Affine, NodeModel::Twist] {
+        assembled_normal_equations_equal_the_dense_products(model);
+    }
+}
+
+fn assembled_normal_equations_equal_the_dense_products(model: NodeModel) {
+    let mut g = graph_on_sheet(0.01, Edges::SpaceInWindow).with_model(model);
     for (j, n) in g.deformation.nodes.iter_mut().enumerate() {
         let f = j as f64 * 0.53;
-        n.rotation = Matrix3::identity() + Matrix3::new(0.02, f.sin() * 0.05, 0.0, 0.01, 0.0, f.cos() * 0.03, 0.0, 0.02, -0.01);
+        n.rotation = perturbed(model, f);
         n.translation_m = Vector3::new(f.sin(), 0.2, f.cos()) * 1e-3;
     }
     for (p, t) in sheet(0.008) {
         g.constrain(Constraint { source_m: p, target_m: bend(&p), time: t });
     }
     let w = GraphWeights::default();
-    let n = UNKNOWNS * g.deformation.nodes.len();
+    let n = g.unknowns();
     // Dense J and r from the rows the solver visits.
     let mut rows: Vec<(f64, Vec<(usize, f64)>)> = Vec::new();
     g.visit(&w, |r, row| rows.push((r, row.to_vec())));

@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 
 use frames::{DepthPrep, Level};
 use gn::{Weights, accumulate};
-use relight::{Relighter, Undivide};
+use relight::{Lighting, Relighter, Undivide, load_light};
 
 /// What the live frame is registered to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -179,31 +179,11 @@ pub struct IcpRgb {
     /// The last relative motion (previous camera → current camera frame).
     velocity: Option<Iso3>,
     /// The capsule's light model, which relights the photometric term (`light_file`).
-    light: Option<LightModel>,
+    light: Option<Lighting>,
     /// Why no light model was loaded although `light_file` names one (told on the first frame).
     missing: Option<String>,
     /// The table that multiplies a divided fall-off back in (`relight::Undivide`).
     undivide: Option<Undivide>,
-}
-
-/// The light model `light_file` names (relative to the input folder), or none with the reason
-/// when the file does not exist; a file that exists but does not parse is an error.
-fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<LightModel>, Option<String>), StageError> {
-    if light_file.is_empty() {
-        return Ok((None, None));
-    }
-    let path = env.input_file(light_file);
-    if !path.exists() {
-        let why = format!(
-            "no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
-            path.display()
-        );
-        return Ok((None, Some(why)));
-    }
-    let light = capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
-        StageError::invalid_input(format!("icp-rgb: light_file: {e}; fix the file, or set plugins.icp-rgb.light_file = \"\" to compare intensities unlit"))
-    })?;
-    Ok((Some(light), None))
 }
 
 /// How far the frame's depth is trusted, by its source (measured or estimated).
@@ -297,7 +277,7 @@ impl IcpRgb {
         // The photometric term relights images as the camera took them: a fall-off a
         // preprocessor divided out goes back in (`relight.rs`), by a table kept per camera.
         let prep = self.params.depth_prep();
-        let undivide = Undivide::kept(&mut self.undivide, self.light.as_ref(), frame.photometry.divided, cam);
+        let undivide = Undivide::kept(&mut self.undivide, self.light.as_ref().map(|l| &l.model), frame.photometry.divided, cam);
         let restore = undivide.map(|u| move |g: GrayF32| u.apply(g));
         let live = frames::live(frame, cam, LEVELS, &prep, restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
         if let Some(why) = self.missing.take() {
@@ -328,7 +308,7 @@ impl IcpRgb {
 
     /// The light model that relights the photometric term, if one was loaded.
     pub(crate) fn light(&self) -> Option<&LightModel> {
-        self.light.as_ref()
+        self.light.as_ref().map(|l| &l.model)
     }
 
     /// The previous tracked live frame's finest level (the photometric reference).

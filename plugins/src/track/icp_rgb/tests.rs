@@ -203,7 +203,8 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let previous = super::frames::live(&a, &ph.camera, 3, &prep, None);
     let live = super::frames::live(&b, &ph.camera, 3, &prep, None);
     let w = photometric_weights();
-    let relighter = super::relight::Relighter::new(&ph.light);
+    let lighting = super::relight::Lighting::new(ph.light.clone());
+    let relighter = super::relight::Relighter::new(&lighting);
     let albedo = relighter.live_albedo(&live[0]);
     let rms = |light: Option<&super::relight::Relighter>| {
         let s = super::gn::accumulate(
@@ -254,7 +255,8 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     let (g_raw, g_res) = (&raw.1[0].gray, &restored.1[0].gray);
     let worst = g_raw.data().iter().zip(g_res.data()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     assert!(worst < 2.5 / 255.0, "restored intensity off by {worst}");
-    let relighter = super::relight::Relighter::new(l);
+    let lighting = super::relight::Lighting::new(l.clone());
+    let relighter = super::relight::Relighter::new(&lighting);
     let rms = |(previous, live, t_ref_live): &(Vec<super::frames::Level>, Vec<super::frames::Level>, capsule_slam_framework::Iso3)| {
         let albedo = relighter.live_albedo(&live[0]);
         let s = super::gn::accumulate(
@@ -266,4 +268,20 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     };
     let (rms_raw, rms_restored) = (rms(&raw), rms(&restored));
     assert!(rms_restored < 1.1 * rms_raw, "relit intensity RMS {rms_restored:.4} restored against {rms_raw:.4} raw");
+}
+
+#[test]
+fn the_gamma_tables_follow_pow_to_a_millionth() {
+    for gamma in [2.2, 1.8, 1.0] {
+        for exponent in [gamma, 1.0 / gamma] {
+            let table = super::relight::PowerTable::new(exponent);
+            // A dense sweep, the ends, and the values beside the exact-below threshold.
+            let xs = (0..=200_000).map(|i| f64::from(i) / 200_000.0).chain([1e-9, 2.999e-3, 3.001e-3, 0.999_999]);
+            let worst = xs.map(|x: f64| (table.at(x) - x.powf(exponent)).abs()).fold(0.0, f64::max);
+            assert!(worst < 1e-6, "x^{exponent}: off by {worst:e}");
+        }
+    }
+    // Out of range: clamped, as the light model's encode and decode clamp.
+    let t = super::relight::PowerTable::new(1.0 / 2.2);
+    assert_eq!((t.at(-0.5), t.at(1.5), t.at(f64::NAN).is_nan()), (0.0, 1.0, true));
 }

@@ -11,26 +11,41 @@
 //! - photometric (Eq. (3)): `r = I_live(π(T_cw x̃)) − I_ref`, I_ref the previous live frame's
 //!   intensity where the model point was predicted (lit like the live frame).
 //!
-//! A residual linear in x̃ with gradient a has, for node k, the 12 entries of the ED graph's
-//! unknown order (`crate::common::ed_graph`): `∂r/∂R_k[axis][col] = w_k a[axis] (x − g_k)[col]` at
-//! `3 col + axis`, `∂r/∂t_k[axis] = w_k a[axis]` at `9 + axis`.
+//! A residual linear in x̃ with gradient a has, for node k, the entries of the ED graph's unknown
+//! order (`crate::common::ed_graph::NodeModel`): for an affine node
+//! `∂r/∂R_k[axis][col] = w_k a[axis] (x − g_k)[col]` at `3 col + axis`, `∂r/∂t_k[axis] = w_k a[axis]`
+//! at `9 + axis`; for a twist node (`R_k ← exp(ω) R_k`) `∂r/∂t_k = w_k a` at 0–2 and
+//! `∂r/∂ω_k = w_k (R_k (x − g_k)) × a` at 3–5.
 
 use nalgebra::{Matrix3, Point3, Vector3, Vector6};
 
-/// The 12 Jacobian entries of node k for a residual with world gradient `a` at x̃: `v = x − g_k`,
-/// `w` the node's weight. The assembly never forms it: `system::Accumulator::add_point` adds
-/// its products in the Kronecker form `w_k [v; 1] ⊗ a`; the tests check both against finite
-/// differences and dense products.
 #[cfg(test)]
-pub fn node_row(a: &Vector3<f64>, v: &Vector3<f64>, w: f64) -> [f64; 12] {
-    let mut out = [0.0; 12];
-    for col in 0..3 {
-        for axis in 0..3 {
-            out[3 * col + axis] = w * a[axis] * v[col];
+use crate::common::ed_graph::NodeModel;
+
+/// Node k's Jacobian entries (the model's count) for a residual with world gradient `a`: `v =
+/// x − g_k`, `r` the node's rotation part, `w` its weight. The assembly never forms it:
+/// `system::Accumulator::add_point` adds its products in block form; the tests check both
+/// against finite differences and dense products.
+#[cfg(test)]
+pub fn node_row(model: NodeModel, a: &Vector3<f64>, v: &Vector3<f64>, r: &Matrix3<f64>, w: f64) -> Vec<f64> {
+    let mut out = vec![0.0; model.unknowns()];
+    match model {
+        NodeModel::Affine => {
+            for col in 0..3 {
+                for axis in 0..3 {
+                    out[3 * col + axis] = w * a[axis] * v[col];
+                }
+            }
+        }
+        NodeModel::Twist => {
+            let turn = (r * v).cross(a);
+            for axis in 0..3 {
+                out[3 + axis] = w * turn[axis];
+            }
         }
     }
     for axis in 0..3 {
-        out[9 + axis] = w * a[axis];
+        out[model.translation() + axis] = w * a[axis];
     }
     out
 }
@@ -92,16 +107,16 @@ mod tests {
         d
     }
 
-    /// Perturbs unknown `i` of node `k` (ED order) by `h`.
-    fn bumped(d: &Deformation, k: usize, i: usize, h: f64) -> Deformation {
+    /// Perturbs unknown `i` of node `k` (the model's order) by `h`.
+    fn bumped(model: NodeModel, d: &Deformation, k: usize, i: usize, h: f64) -> Deformation {
         let mut d = d.clone();
-        if i < 9 {
-            d.nodes[k].rotation[(i % 3, i / 3)] += h;
-        } else {
-            d.nodes[k].translation_m[i - 9] += h;
-        }
+        let mut step = vec![0.0; model.unknowns()];
+        step[i] = h;
+        model.shift(&mut d.nodes[k], &step, 1.0);
         d
     }
+
+    const MODELS: [NodeModel; 2] = [NodeModel::Affine, NodeModel::Twist];
 
     #[test]
     fn point_to_plane_jacobians_match_finite_differences() {
@@ -111,10 +126,10 @@ mod tests {
         let (n, cam_d) = (Vector3::new(0.1, -0.2, -0.97).normalize(), Point3::new(0.001, 0.0015, 0.012));
         let t_wc = exp_se3(&Vector6::new(0.001, 0.002, 0.017, 0.02, -0.01, 0.03));
         let r = |d: &Deformation, t: &Iso3| data_residual(&n, &d.warp_with(&x, &infl), &(t * cam_d));
-        for &(k, w) in &infl {
-            let ana = node_row(&n, &(x - d.nodes[k].position_m), w);
-            let num: [f64; 12] = numeric(|i, h| r(&bumped(&d, k, i, h), &t_wc));
-            assert!(ana.iter().zip(&num).all(|(a, b)| (a - b).abs() < 1e-7), "node {k}: {ana:?} vs {num:?}");
+        for (model, &(k, w)) in MODELS.iter().flat_map(|m| infl.iter().map(move |i| (*m, i))) {
+            let ana = node_row(model, &n, &(x - d.nodes[k].position_m), &d.nodes[k].rotation, w);
+            let num: [f64; 12] = numeric(|i, h| if i < model.unknowns() { r(&bumped(model, &d, k, i, h), &t_wc) } else { 0.0 });
+            assert!(ana.iter().zip(&num).all(|(a, b)| (a - b).abs() < 1e-7), "{model:?} node {k}: {ana:?} vs {num:?}");
         }
         let ana = data_camera_row(&n, &(t_wc * cam_d));
         let num: [f64; 6] = numeric(|i, h| {
@@ -138,10 +153,10 @@ mod tests {
         let warped = d.warp_with(&x, &infl);
         let q = t_wc.inverse() * warped;
         let m = photo_world_gradient(t_wc.rotation.to_rotation_matrix().matrix(), &image_gradient_cam(&q.coords, (0.002, -0.001), fx, fy));
-        for &(k, w) in &infl {
-            let ana = node_row(&m, &(x - d.nodes[k].position_m), w);
-            let num: [f64; 12] = numeric(|i, h| r(&bumped(&d, k, i, h), &t_wc));
-            assert!(ana.iter().zip(&num).all(|(a, b)| (a - b).abs() < 1e-6 * (1.0 + b.abs())), "node {k}: {ana:?} vs {num:?}");
+        for (model, &(k, w)) in MODELS.iter().flat_map(|m| infl.iter().map(move |i| (*m, i))) {
+            let ana = node_row(model, &m, &(x - d.nodes[k].position_m), &d.nodes[k].rotation, w);
+            let num: [f64; 12] = numeric(|i, h| if i < model.unknowns() { r(&bumped(model, &d, k, i, h), &t_wc) } else { 0.0 });
+            assert!(ana.iter().zip(&num).all(|(a, b)| (a - b).abs() < 1e-6 * (1.0 + b.abs())), "{model:?} node {k}: {ana:?} vs {num:?}");
         }
         let ana = photo_camera_row(&m, &warped);
         let num: [f64; 6] = numeric(|i, h| {

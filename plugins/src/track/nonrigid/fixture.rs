@@ -88,8 +88,8 @@ pub struct SolverCase {
 
 impl SolverCase {
     /// About `nodes` nodes on a 22 × 22 mm patch seen with a 0.3 mm wave (spacing from the
-    /// count; ≥ 4 model points per node).
-    pub fn new(nodes: usize) -> Result<Self, capsule_slam_framework::StageError> {
+    /// count; ≥ 4 model points per node), parametrised by `model`.
+    pub fn new(nodes: usize, model: crate::common::ed_graph::NodeModel) -> Result<Self, capsule_slam_framework::StageError> {
         let side_m = 0.0224;
         let spacing_m = side_m / (nodes.max(1) as f64).sqrt();
         let half = ((side_m / 2.0) / (spacing_m / 2.0)).ceil().max(14.0) as i32;
@@ -108,6 +108,7 @@ impl SolverCase {
             // Three iterations, as the solver table of docs/results/nonrigid.md was measured.
             iterations: 3,
             step_tolerance_m: 0.0,
+            node_model: model,
             ..Default::default()
         };
         let mut tracker = Nonrigid::new(params)?;

@@ -44,6 +44,7 @@ pub mod fixture;
 mod nodes;
 mod params;
 pub(crate) mod points;
+mod priors;
 mod solve;
 mod system;
 #[cfg(test)]
@@ -310,7 +311,8 @@ impl Nonrigid {
             index[i] = s;
         }
         let solve_nodes: Vec<DeformationNode> = solve_ids.iter().map(|&i| all.nodes[i]).collect();
-        let mut graph = Graph::new(Deformation::new(solve_nodes, p.k as usize, Window::All).within(reach), p.connectivity as usize, Edges::SpaceInWindow);
+        let mut graph = Graph::new(Deformation::new(solve_nodes, p.k as usize, Window::All).within(reach), p.connectivity as usize, Edges::SpaceInWindow)
+            .with_model(p.node_model);
         let normals: Vec<_> = solve_ids.iter().map(|&i| self.nodes.nodes[i].normal).collect();
         let cos_edge = p.max_edge_angle_rad.cos();
         for (j, nb) in graph.neighbours.iter_mut().enumerate() {
@@ -375,7 +377,7 @@ impl Nonrigid {
             )));
         }
         // Model selection: the warp must lower the point-to-plane residual by a share, and by
-        // more than its 12 unknowns per node would by fitting noise (the gain in χ² measured
+        // more than its unknowns (12 or 6 per node) would by fitting noise (the gain in χ² measured
         // against the fitted residual, an AIC-like test with `min_evidence` per unknown). The
         // photometric gain is reported, not tested: it is alike on still and moving walls
         // (`docs/results/nonrigid.md`).
@@ -383,7 +385,7 @@ impl Nonrigid {
         let gain_chi2 = outcome.inliers as f64 * ((r0 * r0) / (r1 * r1).max(1e-30) - 1.0);
         let gains = Gains::of(&outcome);
         let judged = windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames);
-        if judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (12 * solve_ids.len()) as f64 {
+        if judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (p.node_model.unknowns() * solve_ids.len()) as f64 {
             return Ok(Fit::Still(gains, judged));
         }
         for (s, &i) in solve_ids.iter().enumerate() {

@@ -4,6 +4,7 @@ use capsule_slam_framework::StageError;
 use capsule_slam_framework::params::PluginParams;
 use serde::{Deserialize, Serialize};
 
+use crate::common::ed_graph::NodeModel;
 use crate::track::icp_rgb::IcpRgbParams;
 
 use super::solve::Weights;
@@ -31,6 +32,10 @@ capsule_slam_framework::plugin_params! {
         /// `factorCommon`): the camera explains it, and the map cannot drift with a camera error.
         /// Off by default: the joint solve's camera already takes the common motion.
         pub factor_common: bool = false; unit = "-";
+        /// The nodes' transforms: `affine` (Sumner's 12 unknowns, R held near a rotation by
+        /// `E_rot`, the `deformation` closer's) or `twist` (a rigid motion, 6 unknowns: DynamicFusion,
+        /// SurfelWarp; a quarter of the normal-equation entries).
+        pub node_model: NodeModel = NodeModel::Affine; unit = "-";
         /// Node spacing (SurfelWarp: 25 mm at body scale; nonrigid.md §8: λ/6 ≈ 8–10 mm for a 60 mm wave).
         pub node_spacing_m: f64 = 0.008; unit = "m"; range = 1.0e-4..=1.0;
         /// Nodes farther than this do not move a point (and bind no model point); 2 × spacing.
@@ -97,7 +102,7 @@ capsule_slam_framework::plugin_params! {
         /// normal; a tube's axis and roll are near-null directions of point to plane, along which a
         /// warp drifts on a still wall; `docs/results/nonrigid.md`). 0: off.
         pub sigma_slide_m: f64 = 0.0001; unit = "m"; range = 0.0..=10.0;
-        /// Per-frame node R − I prior. 0: off.
+        /// Per-frame node R − I prior (a twist node's ω counts as its first-order ‖R − I‖_F = √2 ‖ω‖). 0: off.
         pub sigma_step_rot: f64 = 0.02; unit = "-"; range = 0.0..=10.0;
         /// Camera prior toward the rigid start, translation. 0: off.
         pub sigma_camera_m: f64 = 0.001; unit = "m"; range = 0.0..=10.0;

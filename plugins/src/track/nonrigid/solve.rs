@@ -13,16 +13,16 @@
 
 use capsule_slam_framework::geometry::{exp_se3, renormalised};
 use capsule_slam_framework::{Iso3, StageError};
-use nalgebra::{Matrix3, Vector3, Vector6};
+use nalgebra::{Vector3, Vector6};
 use rayon::prelude::*;
 
-use crate::common::ed_graph::{Graph, GraphWeights, UNKNOWNS};
+use crate::common::ed_graph::{Graph, GraphWeights, NodeModel};
 use crate::track::icp_rgb::frames::Level;
 use crate::track::icp_rgb::{correlated_count, huber, residual_sigma};
 
 use super::energy::{data_camera_row, data_residual, image_gradient_cam, photo_camera_row, photo_world_gradient};
 use super::points::{ModelPoint, look};
-use super::system::{Accumulator, Factor, Pattern, PointSums, Residual};
+use super::system::{Accumulator, Factor, NodeFactor, Pattern, PointSums, Residual};
 
 /// The weights and gates of the energy.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -154,7 +154,8 @@ impl<'a> Problem<'a> {
 
     /// The normal-equation pattern of this problem and where every term lands in it.
     pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
-        let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera);
+        let model = self.graph.model;
+        let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera, model);
         let bound: Vec<BoundPoint> = self.points.iter().map(|(p, b)| self.bound_point(&pattern, p, b)).collect();
         let mut reg_slots = Vec::new();
         self.graph.visit(&Self::graph_weights(w), |_, row| {
@@ -169,7 +170,7 @@ impl<'a> Problem<'a> {
         let diag: Vec<usize> = (0..pattern.unknowns()).map(|u| pattern.slot(u, u).unwrap_or(usize::MAX)).collect();
         let translation_slots = (0..self.graph.deformation.nodes.len())
             .map(|j| {
-                let base = UNKNOWNS * j + 9;
+                let base = model.unknowns() * j + model.translation();
                 let mut s = [usize::MAX; 6];
                 let mut k = 0;
                 for a in 0..3 {
@@ -198,6 +199,7 @@ impl<'a> Problem<'a> {
     /// Solves from `t_start` (the rigid estimate); the graph's node transforms hold the warp.
     pub fn solve(&mut self, level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
         let nodes = self.graph.deformation.nodes.len();
+        let u = self.graph.model.unknowns();
         let clock = std::time::Instant::now();
         let mut layout = self.layout(w)?;
         let ms_layout = ms(clock);
@@ -235,15 +237,15 @@ impl<'a> Problem<'a> {
             if !step.iter().all(|v| v.is_finite()) {
                 return Err(StageError::invalid_input("nonrigid: the Gauss-Newton step is not finite"));
             }
-            self.graph.shift(&step[..UNKNOWNS * nodes], 1.0);
+            self.graph.shift(&step[..u * nodes], 1.0);
             if self.camera {
-                let d = Vector6::from_column_slice(&step[UNKNOWNS * nodes..]);
+                let d = Vector6::from_column_slice(&step[u * nodes..]);
                 t = renormalised(exp_se3(&d) * t);
                 xi += d;
             }
             out.iterations += 1;
             let norm = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if norm < 1e-9 || largest_translation_m(&step, nodes, self.camera) < w.step_tolerance_m {
+            if norm < 1e-9 || largest_translation_m(&step, nodes, self.camera, self.graph.model) < w.step_tolerance_m {
                 break;
             }
         }
@@ -263,11 +265,13 @@ impl<'a> Problem<'a> {
             .map(|(pts, bound)| {
                 let mut acc = pattern.accumulator();
                 let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
+                let mut factors = Vec::new();
                 for ((p, binding), b) in pts.iter().zip(bound) {
                     let mut sums = PointSums::default();
                     let r2 = self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q));
                     if sums.count > 0 {
-                        acc.add_point(&b.factors, &b.pairs, &sums);
+                        self.node_factors(b, &mut factors);
+                        acc.add_point(&factors, &b.pairs, &sums);
                     }
                     for (k, v) in r2.into_iter().enumerate() {
                         if let Some(v) = v {
@@ -352,74 +356,14 @@ impl<'a> Problem<'a> {
             }
         });
     }
-
-    /// Adds the rest-shape, step and camera priors (all on the diagonal) and a tiny
-    /// Levenberg term.
-    fn add_priors(&self, w: &Weights, xi: &Vector6<f64>, pattern: &mut Pattern, diag: &[usize], g: &mut [f64]) {
-        let vals = pattern.a.val_mut();
-        let inv2 = |s: f64| if s > 0.0 { 1.0 / (s * s) } else { 0.0 };
-        let mut add = |u: usize, h: f64, grad: f64| {
-            if diag[u] != usize::MAX {
-                vals[diag[u]] += h + 1e-9;
-            }
-            g[u] += grad;
-        };
-        let (rest, step, rot) = (inv2(w.sigma_rest_m), inv2(w.sigma_step_m), inv2(w.sigma_step_rot));
-        for (j, node) in self.graph.deformation.nodes.iter().enumerate() {
-            let off = node.position_m.coords + node.translation_m - self.references[j];
-            let dr = node.rotation - Matrix3::identity();
-            for m in 0..9 {
-                add(UNKNOWNS * j + m, rot, rot * dr[(m % 3, m / 3)]);
-            }
-            for axis in 0..3 {
-                add(UNKNOWNS * j + 9 + axis, rest + step, rest * off[axis] + step * node.translation_m[axis]);
-            }
-        }
-        if self.camera {
-            let base = UNKNOWNS * self.graph.deformation.nodes.len();
-            for c in 0..6 {
-                let h = if c < 3 { inv2(w.sigma_camera_m) } else { inv2(w.sigma_camera_rad) };
-                add(base + c, h, h * xi[c]);
-            }
-        }
-    }
-}
-
-impl Problem<'_> {
-    /// Adds the slide prior: `‖(I − n nᵀ) t_j‖² / σ_slide²` per node, a per-frame step along the
-    /// surface. A wall moves mostly along its normal (a peristaltic wave is radial), while a
-    /// tube's axis and roll are near-null directions of point to plane: without this prior the
-    /// nodes slide along the tube and take the camera's motion with them.
-    fn add_slide_prior(&self, w: &Weights, pattern: &mut Pattern, slots: &[[usize; 6]], g: &mut [f64]) {
-        if w.sigma_slide_m <= 0.0 {
-            return;
-        }
-        let h = 1.0 / (w.sigma_slide_m * w.sigma_slide_m);
-        let vals = pattern.a.val_mut();
-        for (j, node) in self.graph.deformation.nodes.iter().enumerate() {
-            let n = self.normals[j];
-            let p = (Matrix3::identity() - n * n.transpose()) * h;
-            let grad = p * node.translation_m;
-            let mut k = 0;
-            for a in 0..3 {
-                g[UNKNOWNS * j + 9 + a] += grad[a];
-                for b in 0..=a {
-                    if slots[j][k] != usize::MAX {
-                        vals[slots[j][k]] += p[(a, b)];
-                    }
-                    k += 1;
-                }
-            }
-        }
-    }
 }
 
 /// What a bound model point's residuals need of the layout: the block ids of its node pairs,
-/// `pairs[k (k + 1) / 2 + l]` for l ≤ k, and its node factors `(k, w_k [x − g_k; 1])` (the
-/// nodes' positions stay put while the solve moves their transforms).
+/// `pairs[k (k + 1) / 2 + l]` for l ≤ k, and its nodes with their weights and offsets
+/// `(k, w_k, x − g_k)` (the nodes' positions stay put while the solve moves their transforms).
 struct BoundPoint {
     pairs: Vec<usize>,
-    factors: Vec<(usize, [f64; 4])>,
+    factors: Vec<(usize, f64, Vector3<f64>)>,
 }
 
 impl Problem<'_> {
@@ -430,22 +374,32 @@ impl Problem<'_> {
                 pairs.push(pattern.block(i, j).unwrap_or(0));
             }
         }
-        let factors = binding
-            .iter()
-            .map(|&(k, wk)| {
-                let v = p.x_world_m - self.graph.deformation.nodes[k].position_m;
-                (k, [wk * v.x, wk * v.y, wk * v.z, wk])
-            })
-            .collect();
+        let factors = binding.iter().map(|&(k, wk)| (k, wk, p.x_world_m - self.graph.deformation.nodes[k].position_m)).collect();
         BoundPoint { pairs, factors }
+    }
+
+    /// The bound point's node factors at the current node transforms (a twist node's offset
+    /// turns with its rotation).
+    fn node_factors(&self, b: &BoundPoint, out: &mut Vec<NodeFactor>) {
+        let nodes = &self.graph.deformation.nodes;
+        out.clear();
+        out.extend(b.factors.iter().map(|&(node, w, v)| NodeFactor {
+            node,
+            w,
+            v: match self.graph.model {
+                NodeModel::Affine => v,
+                NodeModel::Twist => nodes[node].rotation * v,
+            },
+        }));
     }
 }
 
 /// The largest translation a Gauss-Newton step gives a node or the camera, metres.
-fn largest_translation_m(step: &[f64], nodes: usize, camera: bool) -> f64 {
+fn largest_translation_m(step: &[f64], nodes: usize, camera: bool, model: NodeModel) -> f64 {
     let at = |i: usize| Vector3::new(step[i], step[i + 1], step[i + 2]).norm();
-    let node = (0..nodes).map(|j| at(UNKNOWNS * j + 9)).fold(0.0, f64::max);
-    if camera { node.max(at(UNKNOWNS * nodes)) } else { node }
+    let u = model.unknowns();
+    let node = (0..nodes).map(|j| at(u * j + model.translation())).fold(0.0, f64::max);
+    if camera { node.max(at(u * nodes)) } else { node }
 }
 
 fn ms(since: std::time::Instant) -> f64 {

@@ -1,14 +1,15 @@
 //! The normal equations of the joint solve, `JᵀWJ δ = −JᵀWr`, in faer's sparse column format:
-//! 12 unknowns per node (the ED graph's order), then the camera's 6 (an arrowhead: the camera
-//! couples to every node). Data terms are gathered per pixel into dense 12 × 12 node-pair blocks
-//! and scattered once per iteration; the graph's own rows (`E_rot`, `E_reg`) land through slots
-//! found once per pattern. The sparse Cholesky's symbolic analysis is kept while the pattern
-//! (nodes, edges and the node pairs the pixels couple) stays the same.
+//! the unknowns of every node (12 for an affine node, 6 for a twist; the ED graph's order,
+//! `crate::common::ed_graph::NodeModel`), then the camera's 6 (an arrowhead: the camera couples
+//! to every node). Data terms are gathered per pixel into dense node-pair blocks and scattered
+//! once per iteration; the graph's own rows (`E_rot`, `E_reg`) land through slots found once per
+//! pattern. The sparse Cholesky's symbolic analysis is kept while the pattern (nodes, edges and
+//! the node pairs the pixels couple) stays the same.
 
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use nalgebra::{Matrix3, Vector3, Vector6};
 
-use crate::common::ed_graph::UNKNOWNS;
+use crate::common::ed_graph::NodeModel;
 use crate::common::sparse_llt::{SparseLlt, SparseLltError};
 
 /// Where each block of the normal matrix lives in the sparse values.
@@ -17,14 +18,15 @@ pub struct Pattern {
     pub a: SparseColMat<usize, f64>,
     nodes: usize,
     camera: bool,
+    model: NodeModel,
     /// The node pairs (i ≥ j), sorted by (j, i): a block's id is its index.
     blocks: Vec<(usize, usize)>,
     /// Where column node j's blocks start in `blocks` (`nodes + 1` entries).
     column_start: Vec<usize>,
-    /// Value slot of each entry of each block (`12 a + b`: row a of node i, column b of node
-    /// j); `usize::MAX` for the upper half of a diagonal block.
+    /// Value slot of each entry of each block (`u² id + u a + b`, u the unknowns per node: row
+    /// a of node i, column b of node j); `usize::MAX` for the upper half of a diagonal block.
     block_slots: Vec<usize>,
-    /// Value slots of the camera rows against each node's columns (`12 c + b`).
+    /// Value slots of the camera rows against each node's columns (`6 u j + u c + b`).
     camera_slots: Vec<usize>,
     /// Value slots of the camera block's lower triangle (`6 r + c`, `usize::MAX` above).
     camera_block: [usize; 36],
@@ -35,16 +37,17 @@ impl Pattern {
     /// always there), with a camera block when `camera`. The compressed columns are laid out
     /// directly from the sorted block list (rows ascending in every column, no triplet sort),
     /// and every block entry's value slot is recorded on the way.
-    pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool) -> Self {
+    pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool, model: NodeModel) -> Self {
         let mut blocks: Vec<(usize, usize)> = (0..nodes).map(|i| (i, i)).chain(pairs.iter().map(|&(i, j)| (i.max(j), i.min(j)))).collect();
         blocks.sort_unstable_by_key(|&(i, j)| (j, i));
         blocks.dedup();
-        let cam0 = UNKNOWNS * nodes;
+        let u = model.unknowns();
+        let cam0 = u * nodes;
         let n = cam0 + if camera { 6 } else { 0 };
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::with_capacity(blocks.len() * 144 + if camera { nodes * 72 + 21 } else { 0 });
-        let mut block_slots = vec![usize::MAX; blocks.len() * 144];
-        let mut camera_slots = if camera { vec![usize::MAX; nodes * 72] } else { Vec::new() };
+        let mut row_idx = Vec::with_capacity(blocks.len() * u * u + if camera { nodes * 6 * u + 21 } else { 0 });
+        let mut block_slots = vec![usize::MAX; blocks.len() * u * u];
+        let mut camera_slots = if camera { vec![usize::MAX; nodes * 6 * u] } else { Vec::new() };
         let mut camera_block = [usize::MAX; 36];
         // Blocks sorted by (column node j, row node i ≥ j): each column's diagonal block first.
         let mut start = 0;
@@ -52,17 +55,17 @@ impl Pattern {
         for j in 0..nodes {
             column_start.push(start);
             let end = start + blocks[start..].iter().take_while(|b| b.1 == j).count();
-            for b in 0..UNKNOWNS {
+            for b in 0..u {
                 col_ptr.push(row_idx.len());
                 for (id, &(i, _)) in blocks.iter().enumerate().take(end).skip(start) {
-                    for a in (if i == j { b } else { 0 })..UNKNOWNS {
-                        block_slots[144 * id + UNKNOWNS * a + b] = row_idx.len();
-                        row_idx.push(UNKNOWNS * i + a);
+                    for a in (if i == j { b } else { 0 })..u {
+                        block_slots[u * u * id + u * a + b] = row_idx.len();
+                        row_idx.push(u * i + a);
                     }
                 }
                 if camera {
                     for c in 0..6 {
-                        camera_slots[72 * j + UNKNOWNS * c + b] = row_idx.len();
+                        camera_slots[6 * u * j + u * c + b] = row_idx.len();
                         row_idx.push(cam0 + c);
                     }
                 }
@@ -82,7 +85,7 @@ impl Pattern {
         col_ptr.push(row_idx.len());
         let values = vec![0.0; row_idx.len()];
         let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
-        Self { a: SparseColMat::new(symbolic, values), nodes, camera, blocks, column_start, block_slots, camera_slots, camera_block }
+        Self { a: SparseColMat::new(symbolic, values), nodes, camera, model, blocks, column_start, block_slots, camera_slots, camera_block }
     }
 
     /// Unknowns in all.
@@ -117,9 +120,11 @@ impl Pattern {
 
     /// A zeroed accumulator for this pattern.
     pub fn accumulator(&self) -> Accumulator {
+        let u = self.model.unknowns();
         Accumulator {
-            blocks: vec![[0.0; 144]; self.blocks.len()],
-            camera_node: if self.camera { vec![[0.0; 72]; self.nodes] } else { Vec::new() },
+            model: self.model,
+            blocks: vec![0.0; self.blocks.len() * u * u],
+            camera_node: if self.camera { vec![0.0; self.nodes * 6 * u] } else { Vec::new() },
             camera: [0.0; 36],
             g: vec![0.0; self.unknowns()],
             energy: 0.0,
@@ -131,18 +136,13 @@ impl Pattern {
     pub fn scatter(&mut self, acc: &Accumulator) -> Vec<f64> {
         let vals = self.a.val_mut();
         vals.iter_mut().for_each(|v| *v = 0.0);
-        for (id, block) in acc.blocks.iter().enumerate() {
-            for (e, v) in block.iter().enumerate() {
-                let s = self.block_slots[144 * id + e];
-                if s != usize::MAX {
-                    vals[s] += v;
-                }
+        for (&s, v) in self.block_slots.iter().zip(&acc.blocks) {
+            if s != usize::MAX {
+                vals[s] += v;
             }
         }
-        for (j, block) in acc.camera_node.iter().enumerate() {
-            for (e, v) in block.iter().enumerate() {
-                vals[self.camera_slots[72 * j + e]] += v;
-            }
+        for (&s, v) in self.camera_slots.iter().zip(&acc.camera_node) {
+            vals[s] += v;
         }
         for (e, v) in acc.camera.iter().enumerate() {
             if self.camera_block[e] != usize::MAX {
@@ -203,11 +203,39 @@ impl PointSums {
     }
 }
 
+/// The most nodes a model point is bound to (the `k` parameter's range).
+pub const MAX_BINDINGS: usize = 8;
+
+/// A model point's tie to one of its nodes: the node's solve index, its weight `w_k` and the
+/// point's offset from it, `v = x − g_k` for an affine node and `R_k (x − g_k)` for a twist (the
+/// node's current rotation applied).
+#[derive(Debug, Clone, Copy)]
+pub struct NodeFactor {
+    /// Solve index of the node.
+    pub node: usize,
+    /// The point's weight on it.
+    pub w: f64,
+    /// The offset (see above).
+    pub v: Vector3<f64>,
+}
+
+impl NodeFactor {
+    /// The twist node's `∂x̃/∂(t, ω)` transposed, `B = w [I; [v]×]` (6 × 3): a residual of world
+    /// gradient a has the node entries `B a = w [a; v × a]`.
+    fn twist_rows(&self) -> [[f64; 3]; 6] {
+        let (w, v) = (self.w, self.v);
+        [[w, 0.0, 0.0], [0.0, w, 0.0], [0.0, 0.0, w], [0.0, -w * v.z, w * v.y], [w * v.z, 0.0, -w * v.x], [-w * v.y, w * v.x, 0.0]]
+    }
+}
+
 /// JᵀWJ in dense blocks and JᵀWr, summed over residuals.
 #[derive(Clone)]
 pub struct Accumulator {
-    blocks: Vec<[f64; 144]>,
-    camera_node: Vec<[f64; 72]>,
+    model: NodeModel,
+    /// Node-pair blocks, u² values each (row-major, u the unknowns per node).
+    blocks: Vec<f64>,
+    /// Camera rows against each node's columns, 6 u values per node.
+    camera_node: Vec<f64>,
     camera: [f64; 36],
     /// JᵀWr.
     pub g: Vec<f64>,
@@ -216,49 +244,15 @@ pub struct Accumulator {
 }
 
 impl Accumulator {
-    /// Adds one model point's residuals (`sums`), bound to `nodes` (solve index, `w_k [x − g_k;
-    /// 1]`) whose pair blocks are `pairs[k (k + 1) / 2 + l]` for l ≤ k in binding order.
-    pub fn add_point(&mut self, nodes: &[(usize, [f64; 4])], pairs: &[usize], sums: &PointSums) {
+    /// Adds one model point's residuals (`sums`), bound to `nodes`, whose pair blocks are
+    /// `pairs[k (k + 1) / 2 + l]` for l ≤ k in binding order.
+    pub fn add_point(&mut self, nodes: &[NodeFactor], pairs: &[usize], sums: &PointSums) {
         self.energy += sums.energy;
-        let has_camera = !self.camera_node.is_empty();
-        let m = &sums.aa;
-        for (k, &(i, uk)) in nodes.iter().enumerate() {
-            let g = &mut self.g[UNKNOWNS * i..UNKNOWNS * (i + 1)];
-            for col in 0..4 {
-                for axis in 0..3 {
-                    g[3 * col + axis] += uk[col] * sums.ra[axis];
-                }
-            }
-            for (l, &(j, ul)) in nodes.iter().enumerate().take(k + 1) {
-                let block = &mut self.blocks[pairs[k * (k + 1) / 2 + l]];
-                // Row entries belong to the larger node index of the block; a diagonal block's
-                // upper half is never scattered (`Pattern::scatter`).
-                let (ur, uc) = if i >= j { (uk, ul) } else { (ul, uk) };
-                let diagonal = k == l;
-                for ca in 0..4 {
-                    for cb in 0..(if diagonal { ca + 1 } else { 4 }) {
-                        let f = ur[ca] * uc[cb];
-                        for aa in 0..3 {
-                            let row = &mut block[UNKNOWNS * (3 * ca + aa) + 3 * cb..UNKNOWNS * (3 * ca + aa) + 3 * cb + 3];
-                            for (ab, e) in row.iter_mut().enumerate() {
-                                *e += f * m[(aa, ab)];
-                            }
-                        }
-                    }
-                }
-            }
-            if has_camera {
-                let block = &mut self.camera_node[i];
-                for c in 0..6 {
-                    for col in 0..4 {
-                        for axis in 0..3 {
-                            block[UNKNOWNS * c + 3 * col + axis] += uk[col] * sums.ca[(c, axis)];
-                        }
-                    }
-                }
-            }
+        match self.model {
+            NodeModel::Affine => self.add_affine(nodes, pairs, sums),
+            NodeModel::Twist => self.add_twist(nodes, pairs, sums),
         }
-        if has_camera {
+        if !self.camera_node.is_empty() {
             let base = self.g.len() - 6;
             for c in 0..6 {
                 self.g[base + c] += sums.rc[c];
@@ -269,14 +263,98 @@ impl Accumulator {
         }
     }
 
+    /// The affine nodes' blocks in Kronecker form: node k's entries are `u_k ⊗ a`, `u_k = w_k
+    /// [v; 1]`, so a pair's block is `u_k u_lᵀ ⊗ Σ W a aᵀ`.
+    fn add_affine(&mut self, nodes: &[NodeFactor], pairs: &[usize], sums: &PointSums) {
+        const U: usize = 12;
+        let has_camera = !self.camera_node.is_empty();
+        let m = &sums.aa;
+        let factor = |f: &NodeFactor| [f.w * f.v.x, f.w * f.v.y, f.w * f.v.z, f.w];
+        for (k, fk) in nodes.iter().enumerate() {
+            let (i, uk) = (fk.node, factor(fk));
+            let g = &mut self.g[U * i..U * (i + 1)];
+            for col in 0..4 {
+                for axis in 0..3 {
+                    g[3 * col + axis] += uk[col] * sums.ra[axis];
+                }
+            }
+            for (l, fl) in nodes.iter().enumerate().take(k + 1) {
+                let (j, ul) = (fl.node, factor(fl));
+                let block = &mut self.blocks[U * U * pairs[k * (k + 1) / 2 + l]..][..U * U];
+                // Row entries belong to the larger node index of the block; a diagonal block's
+                // upper half is never scattered (`Pattern::scatter`).
+                let (ur, uc) = if i >= j { (uk, ul) } else { (ul, uk) };
+                let diagonal = k == l;
+                for ca in 0..4 {
+                    for cb in 0..(if diagonal { ca + 1 } else { 4 }) {
+                        let f = ur[ca] * uc[cb];
+                        for aa in 0..3 {
+                            let row = &mut block[U * (3 * ca + aa) + 3 * cb..U * (3 * ca + aa) + 3 * cb + 3];
+                            for (ab, e) in row.iter_mut().enumerate() {
+                                *e += f * m[(aa, ab)];
+                            }
+                        }
+                    }
+                }
+            }
+            if has_camera {
+                let block = &mut self.camera_node[6 * U * i..][..6 * U];
+                for c in 0..6 {
+                    for col in 0..4 {
+                        for axis in 0..3 {
+                            block[U * c + 3 * col + axis] += uk[col] * sums.ca[(c, axis)];
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The twist nodes' blocks: node k's entries are `B_k a` ([`NodeFactor::twist_rows`]), so a
+    /// pair's block is `B_k (Σ W a aᵀ) B_lᵀ`.
+    fn add_twist(&mut self, nodes: &[NodeFactor], pairs: &[usize], sums: &PointSums) {
+        const U: usize = 6;
+        let has_camera = !self.camera_node.is_empty();
+        // B_k and P_k = B_k M (6 × 3) on the stack: a point has at most `MAX_BINDINGS` nodes.
+        let mut rows = [[[0.0; 3]; 6]; MAX_BINDINGS];
+        let mut products = [[[0.0; 3]; 6]; MAX_BINDINGS];
+        let nodes = &nodes[..nodes.len().min(MAX_BINDINGS)];
+        for (k, f) in nodes.iter().enumerate() {
+            rows[k] = f.twist_rows();
+            for (p, b) in products[k].iter_mut().zip(&rows[k]) {
+                *p = std::array::from_fn(|c| b[0] * sums.aa[(0, c)] + b[1] * sums.aa[(1, c)] + b[2] * sums.aa[(2, c)]);
+            }
+        }
+        for (k, fk) in nodes.iter().enumerate() {
+            let i = fk.node;
+            for (g, b) in self.g[U * i..U * (i + 1)].iter_mut().zip(&rows[k]) {
+                *g += b[0] * sums.ra[0] + b[1] * sums.ra[1] + b[2] * sums.ra[2];
+            }
+            for (l, fl) in nodes.iter().enumerate().take(k + 1) {
+                let block = &mut self.blocks[U * U * pairs[k * (k + 1) / 2 + l]..][..U * U];
+                // Rows belong to the larger node index of the block.
+                let (p, b) = if i >= fl.node { (&products[k], &rows[l]) } else { (&products[l], &rows[k]) };
+                for r in 0..U {
+                    for c in 0..U {
+                        block[U * r + c] += p[r][0] * b[c][0] + p[r][1] * b[c][1] + p[r][2] * b[c][2];
+                    }
+                }
+            }
+            if has_camera {
+                let block = &mut self.camera_node[6 * U * i..][..6 * U];
+                for c in 0..6 {
+                    for col in 0..U {
+                        block[U * c + col] += (0..3).map(|x| sums.ca[(c, x)] * rows[k][col][x]).sum::<f64>();
+                    }
+                }
+            }
+        }
+    }
+
     /// Adds another accumulator of the same pattern.
     pub fn merge(&mut self, o: &Accumulator) {
-        for (a, b) in self.blocks.iter_mut().zip(&o.blocks) {
-            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-        }
-        for (a, b) in self.camera_node.iter_mut().zip(&o.camera_node) {
-            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-        }
+        self.blocks.iter_mut().zip(&o.blocks).for_each(|(x, y)| *x += y);
+        self.camera_node.iter_mut().zip(&o.camera_node).for_each(|(x, y)| *x += y);
         self.camera.iter_mut().zip(&o.camera).for_each(|(x, y)| *x += y);
         self.g.iter_mut().zip(&o.g).for_each(|(x, y)| *x += y);
         self.energy += o.energy;

@@ -7,6 +7,7 @@ use nalgebra::{Point3, Vector3};
 use super::fixture::{cam, level, model};
 use super::points::ModelPoint;
 use super::*;
+use crate::common::ed_graph::NodeModel;
 use crate::common::maps::GeometryParams;
 use crate::track::icp_rgb::frames::pyramid;
 
@@ -43,13 +44,15 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
     let points: Vec<ModelPoint> = pts.iter().map(|p| p.0).collect();
     let before = (pts.iter().map(|(p, t)| (p.x_world_m - t).norm_squared()).sum::<f64>() / pts.len() as f64).sqrt();
     let live = level(amp);
-    for camera in [CameraMode::Fixed, CameraMode::Joint] {
+    for (camera, model) in [CameraMode::Fixed, CameraMode::Joint].into_iter().flat_map(|c| [NodeModel::Affine, NodeModel::Twist].map(|m| (c, m))) {
         let mut t = tracker(camera);
+        t.params.node_model = model;
         t.nodes.cover(&points, t.params.node_spacing_m, 4096);
-        let Fit::Solved { warp, t_world_cam, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("fell back") };
+        let Fit::Solved { warp, t_world_cam, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("{camera:?} {model:?}: fell back") };
         let err = warp_error(&warp, &pts);
-        assert!(err < 0.1e-3, "{camera:?}: warp error {:.4} mm (before {:.4} mm)", err * 1e3, before * 1e3);
-        assert!(t_world_cam.translation.vector.norm() < 0.05e-3, "{camera:?}: the camera moved {:.4} mm", t_world_cam.translation.vector.norm() * 1e3);
+        assert!(err < 0.1e-3, "{camera:?} {model:?}: warp error {:.4} mm (before {:.4} mm)", err * 1e3, before * 1e3);
+        let moved = t_world_cam.translation.vector.norm();
+        assert!(moved < 0.05e-3, "{camera:?} {model:?}: the camera moved {:.4} mm", moved * 1e3);
     }
 }
 
@@ -104,15 +107,26 @@ fn setup(camera: CameraMode, amp_m: f64) -> (Nonrigid, Vec<ModelPoint>, Level) {
 
 #[test]
 fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
+    for model in [NodeModel::Affine, NodeModel::Twist] {
+        assembled_normal_equations_equal_the_dense_products(model);
+    }
+}
+
+fn assembled_normal_equations_equal_the_dense_products(model: NodeModel) {
     let (mut t, points, live) = setup(CameraMode::Joint, 0.0003);
     t.params.huber_k = 1e6; // constant weights
     t.params.sigma_slide_m = 2e-4;
+    t.params.node_model = model;
     let w = t.params.weights();
     let (mut problem, _, _) = t.problem(&points).unwrap();
+    let (u, tr) = (model.unknowns(), model.translation());
     // Move the nodes off the identity so every Jacobian entry is exercised.
     for (j, n) in problem.graph.deformation.nodes.iter_mut().enumerate() {
         n.translation_m = Vector3::new(1e-5 * j as f64, -2e-5, 3e-5);
-        n.rotation[(0, 1)] += 1e-3 * (j % 3) as f64;
+        match model {
+            NodeModel::Affine => n.rotation[(0, 1)] += 1e-3 * (j % 3) as f64,
+            NodeModel::Twist => n.rotation = *nalgebra::Rotation3::new(Vector3::new(1e-3 * (j % 3) as f64, -2e-3, 5e-4)).matrix(),
+        }
     }
     let t_wc = capsule_slam_framework::geometry::exp_se3(&nalgebra::Vector6::new(1e-4, -2e-4, 5e-5, 1e-3, 0.0, -2e-3));
     let xi = nalgebra::Vector6::new(1e-4, 0.0, -1e-4, 1e-3, 2e-3, 0.0);
@@ -128,13 +142,14 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
         problem.point_terms(&live, &t_wc, &w, p, binding, &mut |q: &super::system::Residual| {
             let mut j = nalgebra::DVector::zeros(n);
             for &(k, wk) in binding {
-                let v = p.x_world_m - problem.graph.deformation.nodes[k].position_m;
-                for (m, e) in super::energy::node_row(&q.a, &v, wk).iter().enumerate() {
-                    j[12 * k + m] += e;
+                let node = &problem.graph.deformation.nodes[k];
+                let v = p.x_world_m - node.position_m;
+                for (m, e) in super::energy::node_row(model, &q.a, &v, &node.rotation, wk).iter().enumerate() {
+                    j[u * k + m] += e;
                 }
             }
             for c in 0..6 {
-                j[12 * nodes + c] = q.camera[c];
+                j[u * nodes + c] = q.camera[c];
             }
             rows.push((j, q.r, q.w));
         });
@@ -151,15 +166,28 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
     let inv2 = |s: f64| if s > 0.0 { 1.0 / (s * s) } else { 0.0 };
     for (k, node) in problem.graph.deformation.nodes.iter().enumerate() {
         let off = node.position_m.coords + node.translation_m - problem.references[k];
-        for m in 0..9 {
-            let mut j = nalgebra::DVector::zeros(n);
-            j[12 * k + m] = 1.0;
-            let id = if m % 4 == 0 { 1.0 } else { 0.0 };
-            rows.push((j, node.rotation[(m % 3, m / 3)] - id, inv2(w.sigma_step_rot)));
+        match model {
+            NodeModel::Affine => {
+                for m in 0..9 {
+                    let mut j = nalgebra::DVector::zeros(n);
+                    j[u * k + m] = 1.0;
+                    let id = if m % 4 == 0 { 1.0 } else { 0.0 };
+                    rows.push((j, node.rotation[(m % 3, m / 3)] - id, inv2(w.sigma_step_rot)));
+                }
+            }
+            NodeModel::Twist => {
+                // ‖R − I‖²_F ≈ 2 ‖ω‖²: the rotation vector's components, twice the weight.
+                let omega = nalgebra::Rotation3::from_matrix_unchecked(node.rotation).scaled_axis();
+                for m in 0..3 {
+                    let mut j = nalgebra::DVector::zeros(n);
+                    j[u * k + 3 + m] = 1.0;
+                    rows.push((j, omega[m], 2.0 * inv2(w.sigma_step_rot)));
+                }
+            }
         }
         for axis in 0..3 {
             let mut j = nalgebra::DVector::zeros(n);
-            j[12 * k + 9 + axis] = 1.0;
+            j[u * k + tr + axis] = 1.0;
             rows.push((j.clone(), off[axis], inv2(w.sigma_rest_m)));
             rows.push((j, node.translation_m[axis], inv2(w.sigma_step_m)));
         }
@@ -169,14 +197,14 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
         for tangent in [t1, normal.cross(&t1)] {
             let mut j = nalgebra::DVector::zeros(n);
             for axis in 0..3 {
-                j[12 * k + 9 + axis] = tangent[axis];
+                j[u * k + tr + axis] = tangent[axis];
             }
             rows.push((j, tangent.dot(&node.translation_m), inv2(w.sigma_slide_m)));
         }
     }
     for c in 0..6 {
         let mut j = nalgebra::DVector::zeros(n);
-        j[12 * nodes + c] = 1.0;
+        j[u * nodes + c] = 1.0;
         rows.push((j, xi[c], if c < 3 { inv2(w.sigma_camera_m) } else { inv2(w.sigma_camera_rad) }));
     }
     let mut a_dense = nalgebra::DMatrix::<f64>::zeros(n, n);
@@ -187,15 +215,16 @@ fn the_assembled_normal_equations_equal_the_dense_jacobian_products() {
     }
     // The assembly adds a 1e-9 Levenberg term per prior row on the diagonal.
     let scale = a_dense.amax();
-    assert!((&a - &a_dense).amax() < 1e-9 * scale + 1e-7, "JᵀWJ differs by {:e} (scale {scale:e})", (&a - &a_dense).amax());
+    assert!((&a - &a_dense).amax() < 1e-9 * scale + 1e-7, "{model:?}: JᵀWJ differs by {:e} (scale {scale:e})", (&a - &a_dense).amax());
     let g = nalgebra::DVector::from_vec(g);
-    assert!((&g - &g_dense).amax() < 1e-9 * g_dense.amax().max(1.0), "JᵀWr differs by {:e}", (&g - &g_dense).amax());
+    assert!((&g - &g_dense).amax() < 1e-9 * g_dense.amax().max(1.0), "{model:?}: JᵀWr differs by {:e}", (&g - &g_dense).amax());
 }
 
 /// The eigenvalues of the problem's normal matrix at the rest wall seen as it is.
-fn eigenvalues(priors: bool) -> Vec<f64> {
+fn eigenvalues(priors: bool, model: NodeModel) -> Vec<f64> {
     let (mut t, points, live) = setup(CameraMode::Joint, 0.0);
     t.params.w_rgb = 0.0;
+    t.params.node_model = model;
     if !priors {
         (t.params.sigma_rest_m, t.params.sigma_step_m, t.params.sigma_step_rot, t.params.sigma_slide_m, t.params.sigma_camera_m, t.params.sigma_camera_rad) =
             (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
@@ -211,15 +240,17 @@ fn eigenvalues(priors: bool) -> Vec<f64> {
 
 #[test]
 fn without_priors_camera_and_warp_share_a_six_dimensional_null_space_and_the_priors_remove_it() {
-    let free = eigenvalues(false);
-    let largest = free[free.len() - 1];
-    // Six directions (one rigid motion of camera and nodes alike) cost next to nothing (the
-    // rotations not exactly nothing: live points sit up to half a pixel from the model points);
-    // the seventh is a real deformation, two orders of magnitude up.
-    assert!(free[5] < 1e-9 * largest, "6th eigenvalue {:e} of {largest:e}", free[5]);
-    assert!(free[6] > 100.0 * free[5], "7th eigenvalue {:e} against the 6th {:e}: more than 6 free directions", free[6], free[5]);
-    let anchored = eigenvalues(true);
-    assert!(anchored[0] > 10.0 * free[5] && anchored[0] > 1e6 * free[0], "with the priors the smallest is {:e}", anchored[0]);
+    for model in [NodeModel::Affine, NodeModel::Twist] {
+        let free = eigenvalues(false, model);
+        let largest = free[free.len() - 1];
+        // Six directions (one rigid motion of camera and nodes alike) cost next to nothing (the
+        // rotations not exactly nothing: live points sit up to half a pixel from the model
+        // points); the seventh is a real deformation, two orders of magnitude up.
+        assert!(free[5] < 1e-9 * largest, "{model:?}: 6th eigenvalue {:e} of {largest:e}", free[5]);
+        assert!(free[6] > 100.0 * free[5], "{model:?}: 7th eigenvalue {:e} against the 6th {:e}: more than 6 free directions", free[6], free[5]);
+        let anchored = eigenvalues(true, model);
+        assert!(anchored[0] > 10.0 * free[5] && anchored[0] > 1e6 * free[0], "{model:?}: with the priors the smallest is {:e}", anchored[0]);
+    }
 }
 
 #[test]
