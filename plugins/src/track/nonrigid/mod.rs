@@ -20,9 +20,12 @@
 //!    solves and its χ² by more than `min_evidence` per unknown (Akaike): a still wall is left
 //!    still (counter `nonrigid_still`); while it is clearly still, the warp is solved on every
 //!    `still_probe_every_frames`-th frame only (counter `nonrigid_probe_skipped`);
-//! 5. a fallback to the rigid pose, without a warp, when too few model points find the live
-//!    wall, the solver fails, a node would jump or the camera would leave the rigid start (each
-//!    named in a warning, counter `nonrigid_fallback`).
+//! 5. when the joint solve would move the camera farther from the rigid start than
+//!    `max_camera_step_m`/`_rad`, the nodes are solved again with the camera held there
+//!    (`hold_camera_on_step`, counter `nonrigid_camera_held`: the map keeps following the wall);
+//! 6. a fallback to the rigid pose, without a warp, when too few model points find the live
+//!    wall, the solver fails, a node would jump or (without the hold) the camera would leave
+//!    the rigid start (each named in a warning, counter `nonrigid_fallback`).
 //!
 //! With depth estimated from the image the warp is off (`warp_estimated_depth`): the tracker is
 //! then `icp-rgb` exactly. By default the camera is an unknown of the warp solve (`camera =
@@ -203,6 +206,8 @@ pub(crate) enum Fit {
         nodes: usize,
         /// Model points bound to them.
         points: usize,
+        /// Whether the camera was held at the rigid start (`hold_camera_on_step`).
+        held: bool,
     },
     /// Why the rigid pose stands.
     Fallback(String),
@@ -258,8 +263,11 @@ impl Nonrigid {
                 gains.count(ctx);
                 Ok(None)
             }
-            Fit::Solved { t_world_cam, warp, outcome, nodes, points } => {
+            Fit::Solved { t_world_cam, warp, outcome, nodes, points, held } => {
                 self.probe = Probe::default();
+                if held {
+                    ctx.count("nonrigid_camera_held", 1.0);
+                }
                 ctx.count("nonrigid_nodes", nodes as f64);
                 let moved = rigid.t_world_cam.inverse() * t_world_cam;
                 ctx.count("nonrigid_camera_step_mm", moved.translation.vector.norm() * 1e3);
@@ -347,7 +355,17 @@ impl Nonrigid {
             return Ok(Fit::Fallback("no node has enough model points".into()));
         };
         let p = &self.params;
-        let outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
+        let mut outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
+        let mut held = false;
+        if problem.camera && p.hold_camera_on_step && self.camera_step_too_large(t_start, &outcome.t_world_cam) {
+            // The warp again, the camera held at the rigid start.
+            let Some((again, _, _)) = self.problem(points) else { return Ok(Fit::Fallback("no node has enough model points".into())) };
+            problem = again;
+            problem.camera = false;
+            outcome = problem.solve(level, t_start, &self.params.weights(), &mut self.cache)?;
+            held = true;
+        }
+        let p = &self.params;
         let share = outcome.inliers as f64 / points.len().max(1) as f64;
         let mut d = problem.graph.deformation;
         if p.factor_common {
@@ -365,9 +383,9 @@ impl Nonrigid {
         if max_step > p.max_step_m {
             return Ok(Fit::Fallback(format!("a node would move {:.2} mm in one frame (max_step_m {:.2} mm)", max_step * 1e3, p.max_step_m * 1e3)));
         }
-        let moved = t_start.inverse() * outcome.t_world_cam;
-        let (shift, turn) = (moved.translation.vector.norm(), moved.rotation.angle());
-        if !(shift.is_finite() && turn.is_finite()) || shift > p.max_camera_step_m || turn > p.max_camera_step_rad {
+        if self.camera_step_too_large(t_start, &outcome.t_world_cam) {
+            let moved = t_start.inverse() * outcome.t_world_cam;
+            let (shift, turn) = (moved.translation.vector.norm(), moved.rotation.angle());
             return Ok(Fit::Fallback(format!(
                 "the joint solve would move the camera {:.2} mm / {:.2}° from the rigid start (max_camera_step_m {:.2} mm, max_camera_step_rad {:.3})",
                 shift * 1e3,
@@ -394,7 +412,15 @@ impl Nonrigid {
             node.normal = d.warp_normal_with(&node.normal, &[(s, 1.0)]);
         }
         self.nodes.rebin();
-        Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome })
+        Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome, held })
+    }
+
+    /// Whether the solve moved the camera from the rigid start `t_start` farther than
+    /// `max_camera_step_m` or `max_camera_step_rad` (or to a pose that is not finite).
+    fn camera_step_too_large(&self, t_start: &Iso3, t_world_cam: &Iso3) -> bool {
+        let moved = t_start.inverse() * t_world_cam;
+        let (shift, turn) = (moved.translation.vector.norm(), moved.rotation.angle());
+        !(shift.is_finite() && turn.is_finite()) || shift > self.params.max_camera_step_m || turn > self.params.max_camera_step_rad
     }
 }
 

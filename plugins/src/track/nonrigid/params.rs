@@ -120,6 +120,10 @@ capsule_slam_framework::plugin_params! {
         pub max_camera_step_m: f64 = 0.001; unit = "m"; range = 0.0..=1.0;
         /// The same for the camera's rotation.
         pub max_camera_step_rad: f64 = 0.02; unit = "rad"; range = 0.0..=3.15;
+        /// When the joint solve would move the camera beyond `max_camera_step_m`/`_rad`, solve the
+        /// nodes again with the camera held at the rigid start (SurfelWarp's solve; the map still
+        /// follows the wall) instead of keeping the rigid pose without a warp.
+        pub hold_camera_on_step: bool = true; unit = "-";
         /// Keep the map still unless the warp lowers the point-to-plane RMS by at least this share
         /// on average over `gain_window_frames` (the rigid start's residual is then sensor noise
         /// or the map's own error, and a warp would fit it). Measured with the default

@@ -346,3 +346,35 @@ fn a_clearly_still_wall_is_solved_on_every_nth_frame_only() {
     // Every frame when `still_probe_every_frames` = 1.
     assert!((0..10).all(|_| !probe.skips(1)));
 }
+
+#[test]
+fn a_camera_step_beyond_the_limit_holds_the_camera_and_still_warps() {
+    let amp = 0.0005;
+    let pts = model(amp);
+    let points: Vec<ModelPoint> = pts.iter().map(|p| p.0).collect();
+    let live = level(amp);
+    // A rigid start 1 mm off along the view: the joint solve takes the camera back by about
+    // 0.6 mm (the priors give the rest to the nodes), more than a `max_camera_step_m` of 0.3 mm.
+    let offset = Vector3::new(0.0, 0.0, 0.001);
+    let t_start = Iso3::translation(offset.x, offset.y, offset.z);
+    for hold in [false, true] {
+        let mut t = tracker(CameraMode::Joint);
+        (t.params.hold_camera_on_step, t.params.max_camera_step_m) = (hold, 0.0003);
+        (t.params.min_rms_gain, t.params.min_evidence) = (0.0, 0.0);
+        t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+        match (hold, t.fit(&points, &live, &t_start).unwrap()) {
+            (false, Fit::Fallback(why)) => assert!(why.contains("max_camera_step_m"), "{why}"),
+            (true, Fit::Solved { t_world_cam, held, warp, .. }) => {
+                assert!(held && t_world_cam == t_start, "the camera stays at the rigid start");
+                // Seen from there, the wall is where the warp puts the model: the truth moved
+                // with the camera's offset.
+                let shifted: Vec<(ModelPoint, Point3<f64>)> = pts.iter().map(|(p, truth)| (*p, truth + offset)).collect();
+                let err = warp_error(&warp, &shifted);
+                assert!(err < 0.1e-3, "warp error {:.4} mm against the offset wall (0.047 measured)", err * 1e3);
+            }
+            (hold, Fit::Solved { t_world_cam, .. }) => panic!("hold_camera_on_step = {hold}: solved, camera at {:?}", t_world_cam.translation.vector),
+            (hold, Fit::Fallback(why)) => panic!("hold_camera_on_step = {hold}: fell back: {why}"),
+            (hold, Fit::Still(..)) => panic!("hold_camera_on_step = {hold}: judged still"),
+        }
+    }
+}
