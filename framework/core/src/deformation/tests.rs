@@ -24,6 +24,29 @@ proptest! {
         prop_assert!((d.warp_normal(&p, &n, 0) - n).norm() < 1e-12);
     }
 
+    /// The grid's candidates of any point hold every node within the reach (so the warper
+    /// finds what a scan of all nodes finds), whatever the nodes' spread and the reach.
+    #[test]
+    fn the_grid_holds_every_node_within_the_reach(
+        seed in 0u64..1000,
+        spread in 0.005f64..0.5,
+        reach in 0.001f64..0.05,
+        px in -0.2f64..1.2, py in -0.2f64..1.2, pz in -0.2f64..1.2,
+    ) {
+        // Nodes from a small linear congruential sequence in a cube of side `spread`.
+        let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let mut next = || { state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407); (state >> 11) as f64 / (1u64 << 53) as f64 };
+        let nodes: Vec<Point3<f64>> = (0..60).map(|_| Point3::new(next() * spread, next() * spread, next() * spread)).collect();
+        let grid = super::grid::NodeGrid::new(&nodes, reach);
+        let p = Point3::new(px, py, pz) * spread;
+        let near = grid.near(&p);
+        for (i, n) in nodes.iter().enumerate() {
+            if (n - p).norm_squared() <= reach * reach {
+                prop_assert!(near.contains(&i), "node {} at {} m of the point, reach {}", i, (n - p).norm(), reach);
+            }
+        }
+    }
+
     #[test]
     fn weights_sum_to_one(x in -0.01f64..0.05, y in -0.01f64..0.05) {
         let w = grid(4).influences(&Point3::new(x, y, 0.003), 0);
