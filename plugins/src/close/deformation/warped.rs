@@ -52,6 +52,8 @@ fn params(p: &DeformationParams) -> NonrigidParams {
         sigma_step_m: 0.0,
         max_camera_step_m: p.max_correction_m,
         max_camera_step_rad: 5.0 * tracker.sigma_camera_rad,
+        // A correction beyond the limit is rejected, not replaced by a warp of everything.
+        hold_camera_on_step: false,
         iterations: 2 * tracker.iterations,
         camera: CameraMode::Joint,
         ..tracker
