@@ -37,13 +37,21 @@ fn warp_error(warp: &Deformation, pts: &[(ModelPoint, Point3<f64>)]) -> f64 {
     (sse / pts.len() as f64).sqrt()
 }
 
-#[test]
-fn a_known_smooth_warp_is_recovered_from_its_depth() {
+/// The rest wall's model points with where a 0.5 mm wave moved each, the points alone, and the
+/// live level of the moved wall.
+type MovedWall = (Vec<(ModelPoint, Point3<f64>)>, Vec<ModelPoint>, Level);
+
+fn moved_wall() -> MovedWall {
     let amp = 0.0005;
     let pts = model(amp);
-    let points: Vec<ModelPoint> = pts.iter().map(|p| p.0).collect();
+    let points = pts.iter().map(|p| p.0).collect();
+    (pts, points, level(amp))
+}
+
+#[test]
+fn a_known_smooth_warp_is_recovered_from_its_depth() {
+    let (pts, points, live) = moved_wall();
     let before = (pts.iter().map(|(p, t)| (p.x_world_m - t).norm_squared()).sum::<f64>() / pts.len() as f64).sqrt();
-    let live = level(amp);
     for (camera, model) in [CameraMode::Fixed, CameraMode::Joint].into_iter().flat_map(|c| [NodeModel::Affine, NodeModel::Twist].map(|m| (c, m))) {
         let mut t = tracker(camera);
         t.params.node_model = model;
@@ -58,10 +66,7 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
 
 #[test]
 fn the_iterations_stop_once_a_step_moves_nothing_by_more_than_the_tolerance() {
-    let amp = 0.0005;
-    let pts = model(amp);
-    let points: Vec<ModelPoint> = pts.iter().map(|p| p.0).collect();
-    let live = level(amp);
+    let (pts, points, live) = moved_wall();
     let fit = |tolerance_m: f64| {
         let mut t = tracker(CameraMode::Joint);
         t.params.iterations = 20;
@@ -349,10 +354,7 @@ fn a_clearly_still_wall_is_solved_on_every_nth_frame_only() {
 
 #[test]
 fn a_camera_step_beyond_the_limit_holds_the_camera_and_still_warps() {
-    let amp = 0.0005;
-    let pts = model(amp);
-    let points: Vec<ModelPoint> = pts.iter().map(|p| p.0).collect();
-    let live = level(amp);
+    let (pts, points, live) = moved_wall();
     // A rigid start 1 mm off along the view: the joint solve takes the camera back by about
     // 0.6 mm (the priors give the rest to the nodes), more than a `max_camera_step_m` of 0.3 mm.
     let offset = Vector3::new(0.0, 0.0, 0.001);
