@@ -142,28 +142,27 @@ pub fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<Lighting>,
 /// The light model that relights the photometric term.
 #[derive(Debug, Clone, Copy)]
 pub struct Relighter<'a> {
-    light: &'a LightModel,
-    tables: &'a Lighting,
+    lighting: &'a Lighting,
 }
 
 impl<'a> Relighter<'a> {
     /// Relights images lit by `lighting` as the camera took them.
     pub fn new(lighting: &'a Lighting) -> Self {
-        Self { light: &lighting.model, tables: lighting }
+        Self { lighting }
     }
 
     /// The image's linear response at pixel (u, v) to a unit albedo at camera-frame point `p`
     /// with normal `n`.
     fn response(&self, cam: &PinholeCamera, (u, v): (f64, f64), p: &Point3<f64>, n: &Vector3<f64>) -> f64 {
-        self.light.linear(cam, u, v, 1.0, p, n)
+        self.lighting.model.linear(cam, u, v, 1.0, p, n)
     }
 
     fn decode(&self, encoded: f64) -> f64 {
-        self.tables.decode.at(encoded)
+        self.lighting.decode.at(encoded)
     }
 
     fn encode(&self, linear: f64) -> f64 {
-        self.tables.encode.at(linear)
+        self.lighting.encode.at(linear)
     }
 
     /// The live level's intensity over the light's response at each pixel, `decode(I) /

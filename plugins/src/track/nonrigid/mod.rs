@@ -358,14 +358,14 @@ impl Nonrigid {
         let mut outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
         let mut held = false;
         if problem.camera && p.hold_camera_on_step && self.camera_step_too_large(t_start, &outcome.t_world_cam) {
-            // The warp again, the camera held at the rigid start.
-            let Some((again, _, _)) = self.problem(points) else { return Ok(Fit::Fallback("no node has enough model points".into())) };
-            problem = again;
+            // The warp again from the identity, the camera held at the rigid start.
+            for n in &mut problem.graph.deformation.nodes {
+                *n = DeformationNode::identity(n.position_m, n.time);
+            }
             problem.camera = false;
-            outcome = problem.solve(level, t_start, &self.params.weights(), &mut self.cache)?;
+            outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
             held = true;
         }
-        let p = &self.params;
         let share = outcome.inliers as f64 / points.len().max(1) as f64;
         let mut d = problem.graph.deformation;
         if p.factor_common {
