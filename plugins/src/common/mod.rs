@@ -4,6 +4,7 @@
 
 pub mod ed_graph;
 pub mod maps;
+pub mod masks;
 pub mod pyramid;
 pub mod sparse_llt;
 

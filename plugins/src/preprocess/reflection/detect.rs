@@ -332,33 +332,6 @@ fn grow(px: &Planes, seeds: &[usize], background: &Background, lum: &Luminance, 
     }
 }
 
-/// `mask` dilated by a disc of `radius_px` (0 = unchanged), limited to `within`.
-pub fn dilate(mask: &Mask, radius_px: usize, within: &Mask) -> Mask {
-    if radius_px == 0 {
-        return mask.clone();
-    }
-    let (w, h) = mask.size();
-    let r = radius_px as isize;
-    let offsets: Vec<(isize, isize)> = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| (dx, dy))).filter(|(dx, dy)| dx * dx + dy * dy <= r * r).collect();
-    let mut out = mask.clone();
-    for k in 0..w * h {
-        if !mask.data()[k] {
-            continue;
-        }
-        let (x, y) = ((k % w) as isize, (k / w) as isize);
-        for (dx, dy) in &offsets {
-            let (nx, ny) = (x + dx, y + dy);
-            if nx >= 0 && ny >= 0 && (nx as usize) < w && (ny as usize) < h {
-                let q = ny as usize * w + nx as usize;
-                if within.data()[q] {
-                    out.data_mut()[q] = true;
-                }
-            }
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -18,7 +18,8 @@ use capsule_slam_framework::frame::MASK_SPECULAR;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{CameraFrame, Context, Mask, Plugin, Preprocessor, Rgb8, StageError, register};
 
-use detect::{DetectParams, detect, dilate};
+use crate::common::masks::dilate;
+use detect::{DetectParams, detect};
 use telea::Order;
 
 capsule_slam_framework::plugin_params! {
@@ -123,7 +124,7 @@ impl Reflection {
     pub fn clean(&mut self, img: &mut Rgb8, valid: &Mask) -> Result<Cleaned, StageError> {
         let params = self.detect_params();
         let d = detect(img, valid, &params, &self.decode, &mut self.scratch)?;
-        let inpainted = dilate(&d.mask, self.params.dilate_px as usize, valid);
+        let inpainted = dilate(&d.mask, self.params.dilate_px as usize, Some(valid));
         telea::inpaint(img, &inpainted, valid, self.params.inpaint_radius_px, self.params.inpaint_order)?;
         Ok(Cleaned { detected: d.mask, inpainted, groups: (d.groups, d.rejected) })
     }

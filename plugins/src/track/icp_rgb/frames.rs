@@ -2,10 +2,12 @@
 //! prediction, filled in with the previous live frame where the model has nothing).
 
 use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::frame::MASK_SPECULAR;
 use capsule_slam_framework::image::gray_from_rgb;
 use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
 
 use crate::common::maps::{GeometryParams, NormalMap, VertexMap, geometry, normal_map, vertex_map};
+use crate::common::masks::dilate;
 use crate::common::pyramid::{half_depth, half_gray};
 
 /// One pyramid level.
@@ -35,9 +37,10 @@ pub struct Level {
 /// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
 pub type DepthPrep = GeometryParams;
 
+/// Central differences where both neighbours have depth and an intensity (0 marks none).
 fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
     let (w, h) = g.size();
-    let ok = |x: usize, y: usize| valid.at(x, y) > 0.0;
+    let ok = |x: usize, y: usize| valid.at(x, y) > 0.0 && g.at(x, y) > 0.0;
     let gx =
         GrayF32::from_fn_par(w, h, |x, y| [if x > 0 && x + 1 < w && ok(x - 1, y) && ok(x + 1, y) { 0.5 * (g.at(x + 1, y) - g.at(x - 1, y)) } else { 0.0 }]);
     let gy =
@@ -64,8 +67,8 @@ pub fn pyramid(
         let normals = n0.take().unwrap_or_else(|| normal_map(&vertices, 1, prep.edge_jump_m * (1 << l) as f32));
         let (gx, gy) = gradients(&gray, &depth);
         let next_depth = half_depth(&depth, prep.edge_jump_m);
-        let d = &depth;
-        let next_gray = half_gray(&gray, |x, y| d.at(x, y) > 0.0);
+        let (d, g) = (&depth, &gray);
+        let next_gray = half_gray(&gray, |x, y| d.at(x, y) > 0.0 && g.at(x, y) > 0.0);
         out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None, sigma_correlation_px: 0.0 });
         depth = next_depth;
         gray = next_gray;
@@ -77,8 +80,18 @@ pub fn pyramid(
 /// tracks on filtered depth) and NTSC intensity in [0, 1].
 ///
 /// `restore` maps the level-0 intensity image before the pyramid is built (the fall-off a
-/// preprocessor divided out multiplied back in, `relight::Undivide`).
-pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthPrep, restore: Option<&dyn Fn(GrayF32) -> GrayF32>) -> Vec<Level> {
+/// preprocessor divided out multiplied back in, `relight::Undivide`). The intensity is 0
+/// (no photometric residual) within `rgb_margin_px` of a detected highlight (the frame's
+/// [`MASK_SPECULAR`]): the highlight's tail beyond its detected core brightens the wall by a
+/// view-dependent amount that brightness constancy cannot explain.
+pub fn live(
+    frame: &RgbdFrame,
+    cam: &PinholeCamera,
+    levels: usize,
+    prep: &DepthPrep,
+    restore: Option<&dyn Fn(GrayF32) -> GrayF32>,
+    rgb_margin_px: usize,
+) -> Vec<Level> {
     let params = GeometryParams {
         min_m: prep.min_m,
         max_m: prep.max_m,
@@ -92,6 +105,10 @@ pub fn live(frame: &RgbdFrame, cam: &PinholeCamera, levels: usize, prep: &DepthP
     gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
     if let Some(restore) = restore {
         gray = restore(gray);
+    }
+    if let Some(highlights) = frame.masks.get(MASK_SPECULAR).filter(|_| rgb_margin_px > 0) {
+        let margin = dilate(highlights, rgb_margin_px, None);
+        gray.data_mut().iter_mut().zip(margin.data()).filter(|(_, m)| **m).for_each(|(g, _)| *g = 0.0);
     }
     let mut out = pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep);
     if let Some(sigma) = &frame.depth_sigma_m {

@@ -225,7 +225,8 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
             }
         }
     }
-    if w.w_rgb <= 0.0 || !inside {
+    // An intensity of 0 marks a pixel without one (`frames::live`: near a highlight).
+    if w.w_rgb <= 0.0 || !inside || live.gray.at(x, y) <= 0.0 {
         return;
     }
     let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);

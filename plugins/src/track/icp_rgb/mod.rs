@@ -121,6 +121,12 @@ capsule_slam_framework::plugin_params! {
         /// with the camera; `docs/results/depth-noise.md`: ATE −18 to −42 % on exact depth). A
         /// missing file is a warning and intensities are compared as they are; "": always so.
         pub light_file: String = "light.toml".to_string(); unit = "path";
+        /// The photometric term ignores the pixels within this distance of a detected highlight
+        /// (the `specular` mask of the `reflection` stage; pixels of the full image): the
+        /// highlight's tail beyond its detected core adds view-dependent light that brightness
+        /// constancy cannot explain. ICP and fusion keep the depth there. 0: only the mask
+        /// itself (`docs/results/depth-noise.md`, "A margin around highlights").
+        pub rgb_specular_margin_px: u32 = 10; unit = "px"; range = 0.0..=64.0;
         /// Smallest reference gradient for the photometric term, intensity per pixel.
         pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
         /// Valid depth range: nearest (ElasticFusion: 0.3 m, room scale).
@@ -279,7 +285,8 @@ impl IcpRgb {
         let prep = self.params.depth_prep();
         let undivide = Undivide::kept(&mut self.undivide, self.light.as_ref().map(|l| &l.model), frame.photometry.divided, cam);
         let restore = undivide.map(|u| move |g: GrayF32| u.apply(g));
-        let live = frames::live(frame, cam, LEVELS, &prep, restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32));
+        let margin = self.params.rgb_specular_margin_px as usize;
+        let live = frames::live(frame, cam, LEVELS, &prep, restore.as_ref().map(|f| f as &dyn Fn(GrayF32) -> GrayF32), margin);
         if let Some(why) = self.missing.take() {
             ctx.warn(why);
         }
