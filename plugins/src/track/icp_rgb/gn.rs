@@ -35,6 +35,9 @@ pub struct Weights {
     pub rgb_depth_gate_m: f64,
     /// Smallest reference gradient used by the photometric term, intensity per pixel.
     pub rgb_min_gradient: f64,
+    /// Warp the photometric term's live points at the inverse-variance mean of their depth and
+    /// the model's ([`blended_point`]) where the frame carries a σ.
+    pub rgb_model_depth: bool,
 }
 
 /// The upper triangle of a symmetric 6×6 matrix, row by row (21 values): rank-one updates cost
@@ -209,6 +212,8 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     let sigma = residual_sigma(w.sigma_icp_m, sigma_live, sigma_ref);
     let sigma_w = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live * correlated + sigma_ref * sigma_ref).sqrt();
     let live_normal = normal(&live.normals, x, y);
+    // The live point the photometric term warps, moved along its ray (`rgb_model_depth`).
+    let mut blended: Option<(Vector3<f64>, f64)> = None;
     if let Some(nl) = live_normal {
         sys.live_n += 1;
         if inside && let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) {
@@ -222,6 +227,9 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
                 sys.icp_n += 1;
                 sys.icp_sse += r * r;
                 sys.icp_chi2 += (r / sigma) * (r / sigma);
+                if w.rgb_model_depth && live.sigma.is_some() {
+                    blended = blended_point(&v.cast::<f64>(), t_ref_live, (&d, &n), (sigma_live, sigma_ref));
+                }
             }
         }
     }
@@ -230,10 +238,23 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
         return;
     }
     let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
+    // A point moved by λ along the ray: the light's fall-off (∝ 1/distance², the light beside the
+    // lens) makes its albedo λ² the live one's.
+    let (s, uf, vf, ui, vi, lambda) = match blended {
+        Some((sp, lambda)) => {
+            // Projected again; the Jacobian holds λ fixed.
+            let (uf, vf) = (cam.fx * sp.x / sp.z + cam.cx, cam.fy * sp.y / sp.z + cam.cy);
+            if !(uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh) {
+                return;
+            }
+            (sp, uf, vf, (uf + 0.5) as usize, (vf + 0.5) as usize, lambda)
+        }
+        None => (s, uf, vf, ui, vi, 1.0),
+    };
     let Some((ir, gx, gy)) = reference_sample(inp.photo, (ui, vi), (uf, vf), s.z, gate_m, w.rgb_min_gradient) else { return };
     let predicted = match inp.light {
         None => f64::from(live.gray.at(x, y)),
-        Some((l, albedo)) => match live_normal.and_then(|nl| l.relit(&live.cam, albedo.at(x, y), &nl, t_ref_live, (uf, vf), &s)) {
+        Some((l, albedo)) => match live_normal.and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, t_ref_live, (uf, vf), &s)) {
             Some(i) => i,
             None => return,
         },
@@ -244,6 +265,27 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     sys.add_row(&j, r, wt);
     sys.rgb_n += 1;
     sys.rgb_sse += r * r;
+}
+
+/// The live vertex `v` moved along its ray to the inverse-variance mean of its own depth (σ
+/// `sigma_live_m`) and the model's tangent plane at its ICP match (`d`, `n`, σ `sigma_ref_m`),
+/// in the reference frame, with the ray's scale `λ` (1: the live depth). `None` where the ray
+/// runs along the plane or the frame and model carry no σ.
+pub fn blended_point(
+    v: &Vector3<f64>,
+    t_ref_live: &Iso3,
+    (d, n): (&Vector3<f64>, &Vector3<f64>),
+    (sigma_live_m, sigma_ref_m): (f64, f64),
+) -> Option<(Vector3<f64>, f64)> {
+    let rv = t_ref_live.rotation * v;
+    let den = n.dot(&rv);
+    let (vl, vm) = (sigma_live_m * sigma_live_m, sigma_ref_m * sigma_ref_m);
+    if den.abs() < 1e-9 || vl + vm <= 0.0 {
+        return None;
+    }
+    let on_plane = n.dot(&(d - t_ref_live.translation.vector)) / den;
+    let lambda = 1.0 + vl / (vl + vm) * (on_plane - 1.0);
+    (lambda > 0.0).then(|| (lambda * rv + t_ref_live.translation.vector, lambda))
 }
 
 /// The photometric reference at `(uf, vf)` (nearest pixel `(ui, vi)`): intensity and gradient,
@@ -266,6 +308,25 @@ fn reference_sample(photo: &Level, (ui, vi): (usize, usize), (uf, vf): (f64, f64
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_blended_point_weighs_live_and_model_depth_by_their_variances() {
+        // The model's plane z = 0.05 in the reference frame, a live point at 0.052 on the optical
+        // axis of a camera 1 mm to the side.
+        let t = Iso3::translation(0.001, 0.0, 0.0);
+        let v = Vector3::new(0.0, 0.0, 0.052);
+        let (d, n) = (Vector3::new(0.0, 0.0, 0.05), Vector3::new(0.0, 0.0, -1.0));
+        let z = |s: (f64, f64)| blended_point(&v, &t, (&d, &n), s).map(|(p, _)| p);
+        let on_ray = |p: Vector3<f64>| (p.x - 0.001).abs() < 1e-15 && p.y.abs() < 1e-15;
+        let (half, model, live) = (z((1e-3, 1e-3)).unwrap(), z((1e-3, 0.0)).unwrap(), z((0.0, 1e-3)).unwrap());
+        assert!(on_ray(half) && on_ray(model) && on_ray(live));
+        assert!((half.z - 0.051).abs() < 1e-12 && (model.z - 0.05).abs() < 1e-12 && (live.z - 0.052).abs() < 1e-12);
+        let (_, lambda) = blended_point(&v, &t, (&d, &n), (2e-3, 1e-3)).unwrap();
+        assert!((lambda * 0.052 - (0.8 * 0.05 + 0.2 * 0.052)).abs() < 1e-12, "σ 2 mm against 1 mm: 4:1 for the model");
+        assert_eq!(z((0.0, 0.0)), None);
+        let along = Vector3::new(1.0, 0.0, 0.0);
+        assert_eq!(blended_point(&v, &t, (&d, &along), (1e-3, 1e-3)), None, "a ray in the plane");
+    }
 
     #[test]
     fn upper_triangle_accumulation_equals_the_full_outer_product() {

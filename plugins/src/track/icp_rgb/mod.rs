@@ -127,6 +127,11 @@ capsule_slam_framework::plugin_params! {
         /// constancy cannot explain. ICP and fusion keep the depth there. 0: only the mask
         /// itself (`docs/results/depth-noise.md`, "A margin around highlights").
         pub rgb_specular_margin_px: u32 = 10; unit = "px"; range = 0.0..=64.0;
+        /// Where the frame carries a depth σ, the photometric term warps each live pixel at the
+        /// inverse-variance mean, along its ray, of its own depth and the model's (the tangent
+        /// plane of its ICP match, σ of a fused mean): the model averages many frames' noise
+        /// (`gn::blended_point`; `docs/results/depth-noise.md`).
+        pub rgb_model_depth: bool = true; unit = "-";
         /// Smallest reference gradient for the photometric term, intensity per pixel.
         pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
         /// Valid depth range: nearest (ElasticFusion: 0.3 m, room scale).
@@ -249,6 +254,7 @@ impl IcpRgb {
             icp_cos_gate: p.icp_angle_gate_rad.cos(),
             rgb_depth_gate_m: p.rgb_depth_gate_m,
             rgb_min_gradient: p.rgb_min_gradient,
+            rgb_model_depth: p.rgb_model_depth,
         }
     }
 }

@@ -187,6 +187,7 @@ fn photometric_weights() -> super::gn::Weights {
         icp_cos_gate: 0.35f64.cos(),
         rgb_depth_gate_m: 0.002,
         rgb_min_gradient: 0.0,
+        rgb_model_depth: false,
     }
 }
 
