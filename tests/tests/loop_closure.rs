@@ -15,10 +15,11 @@ use capsule_slam_tests::stages::test_registry;
 
 fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Summary, Vec<FrameRecord>) {
     // Without preprocessors, with the tracker unlit, the sensor's depth as good as exact (no
-    // 0.1 mm default σ) and ElasticFusion's nearest-wins splat (ε = 0), as
-    // docs/results/loop-closure.md was measured (relit, with that σ, or with the 1 mm
-    // ε-z-buffer, this short sequence drifts less and offers no closure the checks accept; the
-    // test is of what a closure does, not of when one is needed).
+    // 0.1 mm default σ), the photometric warp at the live depth (no `rgb_model_depth`) and
+    // ElasticFusion's nearest-wins splat (ε = 0), as docs/results/loop-closure.md was measured
+    // (relit, with that σ, the model's depth or the 1 mm ε-z-buffer, this short sequence drifts
+    // less and offers no closure the checks accept; the test is of what a closure does, not of
+    // when one is needed).
     let sets = [
         "pipeline.depth=sensor".to_string(),
         "pipeline.preprocess=[]".to_string(),
@@ -26,6 +27,7 @@ fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Sum
         "pipeline.tracker=icp-rgb".to_string(),
         "plugins.surfel-cpu.delta_t=15".to_string(),
         "plugins.icp-rgb.light_file=\"\"".to_string(),
+        "plugins.icp-rgb.rgb_model_depth=false".to_string(),
         "plugins.sensor.default_sigma_m=1e-9".to_string(),
         "plugins.surfel-cpu.splat_blend_depth_m=0".to_string(),
     ];
