@@ -108,6 +108,7 @@ mod tests {
     use capsule_slam_framework::{Context, DepthMap};
 
     use super::*;
+    use crate::fuse::surfel_rules::depth_gate;
     use crate::testing::{phantom, rgbd, rig};
 
     #[test]
@@ -118,9 +119,9 @@ mod tests {
         let t = frame.gt_t_world_cam.unwrap();
         let mut r = StageReport::default();
         let exact = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));
-        // σ 2 mm: the 2 mm gate becomes 6 mm, so λ (the gate's only reader) shrinks 3 ×; a σ of
-        // 0.1 mm leaves the gate alone.
-        for (sigma, widen) in [(0.002f32, 3.0f32), (0.0001, 1.0)] {
+        // σ 2 mm: the 2 mm gate becomes 12 mm (6 σ), so λ (the gate's only reader) shrinks 6 ×;
+        // a σ of 0.1 mm leaves the gate alone.
+        for (sigma, widen) in [(0.002f32, 6.0f32), (0.0001, 1.0)] {
             frame.depth_sigma_m = Some(DepthMap::from_fn(frame.depth_m.width(), frame.depth_m.height(), |_, _| [sigma]));
             let noisy = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));
             assert_eq!(noisy.len(), exact.len());
@@ -130,6 +131,13 @@ mod tests {
                 assert_eq!(b.m.sigma_m, sigma, "the measurement carries its pixel's σ");
             }
         }
+        // The tail of a correlated error: a measurement 4 σ behind its surfel (a 5 % error of
+        // 2 mm, 8 mm off) still merges into it instead of starting a second layer.
+        frame.depth_sigma_m = Some(DepthMap::from_fn(frame.depth_m.width(), frame.depth_m.height(), |_, _| [0.002]));
+        let noisy = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));
+        let m = &noisy[noisy.len() / 2];
+        assert!(depth_gate(m.z_live_m + 0.008, m.z_live_m, m.lambda, p.depth_gate_m));
+        assert!(!depth_gate(m.z_live_m + 0.013, m.z_live_m, m.lambda, p.depth_gate_m), "beyond 6 σ it does not");
         // A σ image of another size is left out with a warning.
         frame.depth_sigma_m = Some(DepthMap::new(3, 3));
         let odd = measurements(&frame, &t, &ph.camera, &p, &mut Context::new(20, &rig, None, &mut r));

@@ -16,8 +16,12 @@ capsule_slam_framework::plugin_params! {
         /// Association depth gate along the ray (ElasticFusion: 0.05 m, room scale).
         pub depth_gate_m: f32 = 0.002; unit = "m"; range = 0.0..=10.0;
         /// Where the frame's depth carries a σ per pixel, the depth gate widens to this many σ
-        /// (issue 17: a 2 mm gate would turn every noisy measurement into a new surfel).
-        pub gate_sigmas: f32 = 3.0; unit = "-"; range = 0.0..=100.0;
+        /// (issue 17: a 2 mm gate would turn every noisy measurement into a new surfel). 6, not
+        /// 3: a spatially correlated error shifts whole patches of a frame by 2–3 σ against
+        /// surfels made of few measurements, and each one a 3 σ gate turns away starts a second
+        /// layer (5 % smooth error, presets 1/4/5: surface RMSE 1.09/1.21/1.57 mm at 3 σ,
+        /// 0.45/0.63/0.51 mm at 6 σ, 0.45 mm at 9 σ on preset 1; `docs/results/depth-noise.md`).
+        pub gate_sigmas: f32 = 6.0; unit = "-"; range = 0.0..=100.0;
         /// Association normal gate (ElasticFusion: 0.5 rad).
         pub normal_gate_rad: f32 = 0.5; unit = "rad"; range = 0.0..=3.15;
         /// Model normals with |n_z| below this skip the normal gate (ElasticFusion: 0.75).
