@@ -110,8 +110,10 @@ capsule_slam_framework::plugin_params! {
         pub icp_gate_m: f64 = 0.004; unit = "m"; range = 0.0..=10.0;
         /// Where the frame's depth carries a σ per pixel (`sensor` with a noise model), the ICP and
         /// photometric occlusion gates widen to this many σ of the residual (issue 17: a gate
-        /// tuned for exact depth would cut noisy depth's inliers, not its outliers).
-        pub gate_sigmas: f64 = 3.0; unit = "-"; range = 0.0..=100.0;
+        /// tuned for exact depth would cut noisy depth's inliers, not its outliers). 6 as the
+        /// fuser's `gate_sigmas`: a correlated error shifts whole patches by 2–3 σ (5 % smooth
+        /// error, presets 1–7: ATE −8 … +0.4 % against 3 σ, `docs/results/depth-noise.md`).
+        pub gate_sigmas: f64 = 6.0; unit = "-"; range = 0.0..=100.0;
         /// ICP normal-angle gate (ElasticFusion: 20°).
         pub icp_angle_gate_rad: f64 = 0.35; unit = "rad"; range = 0.0..=3.15;
         /// Photometric occlusion gate on depth (ElasticFusion: 0.07 m, room scale).
