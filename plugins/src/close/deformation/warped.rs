@@ -54,6 +54,8 @@ fn params(p: &DeformationParams) -> NonrigidParams {
         max_camera_step_rad: 5.0 * tracker.sigma_camera_rad,
         // A correction beyond the limit is rejected, not replaced by a warp of everything.
         hold_camera_on_step: false,
+        // A registration of two models, not a wall's motion from frame to frame.
+        warp_lead: 0.0,
         iterations: 2 * tracker.iterations,
         camera: CameraMode::Joint,
         ..tracker

@@ -23,7 +23,11 @@
 //! 5. when the joint solve would move the camera farther from the rigid start than
 //!    `max_camera_step_m`/`_rad`, the nodes are solved again with the camera held there
 //!    (`hold_camera_on_step`, counter `nonrigid_camera_held`: the map keeps following the wall);
-//! 6. a fallback to the rigid pose, without a warp, when too few model points find the live
+//! 6. the map leads the moving wall: a kept warp's node translations are scaled by
+//!    `1 + warp_lead`, so the next frame's rigid start and warp meet a map nearer where the wall
+//!    has gone (a peristaltic wall keeps moving; `params.rs` gives the steady state and the
+//!    stability bound);
+//! 7. a fallback to the rigid pose, without a warp, when too few model points find the live
 //!    wall, the solver fails, a node would jump or (without the hold) the camera would leave
 //!    the rigid start (each named in a warning, counter `nonrigid_fallback`).
 //!
@@ -405,6 +409,12 @@ impl Nonrigid {
         let judged = windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames);
         if judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (p.node_model.unknowns() * solve_ids.len()) as f64 {
             return Ok(Fit::Still(gains, judged));
+        }
+        // The map leads the moving wall by a share of this frame's solved motion (`warp_lead`).
+        if p.warp_lead > 0.0 {
+            for n in &mut d.nodes {
+                n.translation_m *= 1.0 + p.warp_lead;
+            }
         }
         for (s, &i) in solve_ids.iter().enumerate() {
             let (node, dn) = (&mut self.nodes.nodes[i], &d.nodes[s]);

@@ -26,6 +26,8 @@ fn tracker(camera: CameraMode) -> Nonrigid {
         // weight, and no prior on sliding (the test's displacement is along z, not the normal).
         w_rgb: 0.1,
         sigma_slide_m: 0.0,
+        // The warp recovered is the wall's, not led ahead of it.
+        warp_lead: 0.0,
         ..Default::default()
     };
     Nonrigid::new(params).unwrap()
@@ -62,6 +64,33 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
         let moved = t_world_cam.translation.vector.norm();
         assert!(moved < 0.05e-3, "{camera:?} {model:?}: the camera moved {:.4} mm", moved * 1e3);
     }
+}
+
+#[test]
+fn a_kept_warp_leads_the_wall_by_its_share_of_the_solved_motion() {
+    let (_, points, live) = moved_wall();
+    // Frame 1: the wall moved by the test's field; frame 2 by twice it (steady motion).
+    let frames = |lead: f64| {
+        let mut t = tracker(CameraMode::Joint);
+        t.params.warp_lead = lead;
+        t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+        let before: Vec<Point3<f64>> = t.nodes.nodes.iter().map(|n| n.position_m).collect();
+        let Fit::Solved { warp, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("lead {lead}: frame 1 fell back") };
+        let moved: Vec<Vector3<f64>> = t.nodes.nodes.iter().zip(&before).map(|(n, b)| n.position_m - b).collect();
+        let next: Vec<ModelPoint> = points.iter().map(|p| ModelPoint { x_world_m: warp.warp_point(&p.x_world_m, 0), ..*p }).collect();
+        let Fit::Solved { outcome, .. } = t.fit(&next, &level(0.001), &Iso3::identity()).unwrap() else { panic!("lead {lead}: frame 2 fell back") };
+        (warp, moved, outcome.icp_rms_first_m)
+    };
+    let (seen, moved_seen, start_seen) = frames(0.0);
+    let (led, moved_led, start_led) = frames(0.5);
+    // The same solve, its translations scaled by 1.5, its rotations kept; the nodes move alike.
+    assert!(seen.nodes.iter().map(|n| n.translation_m.norm()).fold(0.0, f64::max) > 0.2e-3, "the wall moved");
+    for (a, b) in seen.nodes.iter().zip(&led.nodes) {
+        assert!((b.translation_m - 1.5 * a.translation_m).norm() < 1e-12 && a.rotation == b.rotation);
+    }
+    assert!(moved_seen.iter().zip(&moved_led).all(|(a, b)| (b - 1.5 * a).norm() < 1e-12));
+    // The next frame of a steadily moving wall meets a map nearer it.
+    assert!(start_led < 0.8 * start_seen, "point-to-plane RMS at frame 2's start: {:.4} mm led, {:.4} mm not", start_led * 1e3, start_seen * 1e3);
 }
 
 #[test]
