@@ -93,6 +93,46 @@ fn a_kept_warp_leads_the_wall_by_its_share_of_the_solved_motion() {
     assert!(start_led < 0.8 * start_seen, "point-to-plane RMS at frame 2's start: {:.4} mm led, {:.4} mm not", start_led * 1e3, start_seen * 1e3);
 }
 
+/// The point-to-plane RMS at the start of each of 8 frames of a wall moving steadily by the test's
+/// field per frame, with the default priors and a lead, mm.
+fn steady_starts_mm(lead: f64) -> Vec<f64> {
+    let (_, points, _) = moved_wall();
+    let params = NonrigidParams {
+        node_spacing_m: 0.004,
+        reach_m: 0.008,
+        max_edge_m: 0.012,
+        min_points_per_node: 4,
+        // Model selection is not under test.
+        min_rms_gain: 0.0,
+        gain_window_frames: 1,
+        warp_lead: lead,
+        ..Default::default()
+    };
+    let mut t = Nonrigid::new(params).unwrap();
+    t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+    let mut pts = points;
+    (1..=8)
+        .map(|f| {
+            let Fit::Solved { warp, outcome, .. } = t.fit(&pts, &level(0.0005 * f as f64), &Iso3::identity()).unwrap() else {
+                panic!("lead {lead}: frame {f} fell back")
+            };
+            pts = pts.iter().map(|p| ModelPoint { x_world_m: warp.warp_point(&p.x_world_m, 0), ..*p }).collect();
+            outcome.icp_rms_first_m * 1e3
+        })
+        .collect()
+}
+
+#[test]
+fn the_default_lead_follows_a_steady_wall_closer_without_ringing() {
+    // Without a lead the priors leave a lag that grows to a steady one; the default lead settles
+    // nearer; a lead beyond the stability bound rings from frame to frame.
+    let (none, default, beyond) = (steady_starts_mm(0.0), steady_starts_mm(NonrigidParams::default().warp_lead), steady_starts_mm(1.5));
+    let ringing = |r: &[f64]| r[3..].windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
+    assert!(none[7] > none[1], "the lag grows without a lead: {none:?}");
+    assert!((2..8).all(|k| default[k] < 0.7 * none[k]), "the default lead starts nearer the wall: {default:?} against {none:?}");
+    assert!(ringing(&default) < 0.05 && ringing(&beyond) > 0.15, "ringing {:.3} mm at the default, {:.3} mm at 1.5", ringing(&default), ringing(&beyond));
+}
+
 #[test]
 fn the_iterations_stop_once_a_step_moves_nothing_by_more_than_the_tolerance() {
     let (pts, points, live) = moved_wall();
