@@ -116,6 +116,27 @@ struct Disc {
     y: (i64, i64),
 }
 
+/// The pixels whose centres the disc (centre `p`, unit normal `n`, radius `r_m`, camera frame)
+/// can cover: the projection of its axis-aligned bounding box (half-extent `r·√(1 − n_i²)` per
+/// axis; the nearest depth at least `min_m`, where hits start), whose extremes of x/z and y/z
+/// lie at its corners; capped at 12 pixels from the rounded centre; clipped to the image.
+/// Conservative: every pixel [`Disc::hit`] accepts is inside (a margin of 10⁻³ px for rounding).
+fn pixel_box(p: &Vector3<f32>, n: &Vector3<f32>, r_m: f32, cam: &PinholeCamera, min_m: f32) -> ((i64, i64), (i64, i64)) {
+    let e = n.map(|c| r_m * (1.0 - c * c).max(0.0).sqrt());
+    let (z_lo, z_hi) = ((p.z - e.z).max(min_m.max(1e-6)), (p.z + e.z).max(min_m.max(1e-6)));
+    let span = |c: f32, e: f32, f: f64, centre: f64, size: usize| {
+        let (f, centre) = (f as f32, centre as f32);
+        let ends = [(c - e) / z_lo, (c - e) / z_hi, (c + e) / z_lo, (c + e) / z_hi];
+        let lo = ends.iter().fold(f32::INFINITY, |a, b| a.min(*b)) * f + centre;
+        let hi = ends.iter().fold(f32::NEG_INFINITY, |a, b| a.max(*b)) * f + centre;
+        let mid = (f * c / p.z + centre).round() as i64;
+        let first = ((lo - 1e-3).ceil() as i64).max(mid - 12).max(0);
+        let last = ((hi + 1e-3).floor() as i64).min(mid + 12).min(size as i64 - 1);
+        (first, last)
+    };
+    (span(p.x, e.x, cam.fx, cam.cx, cam.width), span(p.y, e.y, cam.fy, cam.cy, cam.height))
+}
+
 impl Disc {
     /// The disc of `s` seen from `t_cam_world`, or `None` when its centre is outside the depth
     /// range.
@@ -125,15 +146,7 @@ impl Disc {
             return None;
         }
         let n = t_cam_world.rotation * s.normal;
-        let (fx, fy) = (cam.fx as f32, cam.fy as f32);
-        let (u, v) = (fx * p.x / p.z + cam.cx as f32, fy * p.y / p.z + cam.cy as f32);
-        // Bounding box of the disc: a disc of radius r at depth z projects inside a circle of
-        // r·f/z pixels (tilting only shrinks it), widened by a quarter for perspective (capped).
-        let r_px = s.radius_m * fx.max(fy) / p.z;
-        let half = (1.25 * r_px).ceil().min(12.0) as i64;
-        let (u0, v0) = (u.round() as i64, v.round() as i64);
-        let x = ((u0 - half).max(0), (u0 + half).min(cam.width as i64 - 1));
-        let y = ((v0 - half).max(0), (v0 + half).min(cam.height as i64 - 1));
+        let (x, y) = pixel_box(&p.coords, &n, s.radius_m, cam, depths.min_m);
         Some(Self { p: p.coords, n, np: n.dot(&p.coords), r2: s.radius_m * s.radius_m, x, y })
     }
 
@@ -208,21 +221,24 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
 /// The ε-z-buffer: the nearest intersection per pixel, then the most confident disc within ε
 /// of it, an atomic maximum of (capped confidence key << 32 | !index); then, per pixel in parallel,
 /// the winner's own intersection. Returns (depth bits << 32 | index) per pixel (`EMPTY`: none).
-/// `disc` gives a surfel's disc in the camera, if the prediction includes it and it is in range.
+/// `disc` gives a surfel's disc in the camera, if the prediction includes it and it is in range;
+/// the discs are made once, in surfel order, and the passes run over those in view.
 fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + Sync, cam: &PinholeCamera, depths: &SplatDepths) -> Vec<u64> {
     let n = cam.width * cam.height;
+    let discs: Vec<(u32, Disc)> = surfels.par_iter().enumerate().filter_map(|(i, s)| disc(s).map(|d| (i as u32, d))).collect();
     let front: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(u32::MAX)).collect();
-    surfels.par_iter().filter_map(&disc).for_each(|d| {
+    discs.par_iter().for_each(|(_, d)| {
         d.for_each_hit(cam, depths, |k, t| {
             if t.to_bits() < front[k].load(Ordering::Relaxed) {
                 front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
             }
         })
     });
+    // The key's low half is !(position in `discs`): discs are in surfel order, so ties still go
+    // to the lowest surfel index.
     let best: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
-    surfels.par_iter().enumerate().for_each(|(i, s)| {
-        let Some(d) = disc(s) else { return };
-        let key = (u64::from(conf_key(capped(s.confidence, depths))) << 32) | u64::from(!(i as u32));
+    discs.par_iter().enumerate().for_each(|(j, (i, d))| {
+        let key = (u64::from(conf_key(capped(surfels[*i as usize].confidence, depths))) << 32) | u64::from(!(j as u32));
         d.for_each_hit(cam, depths, |k, t| {
             if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
                 best[k].fetch_max(key, Ordering::Relaxed);
@@ -234,9 +250,11 @@ fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + S
         .enumerate()
         .map(|(k, b)| {
             let key = b.into_inner();
-            let i = !(key as u32) as usize;
-            let hit = if key == 0 { None } else { disc(&surfels[i]).and_then(|d| d.hit((k % w) as i64, (k / w) as i64, cam, depths)) };
-            hit.map_or(EMPTY, |t| pack(t, i))
+            if key == 0 {
+                return EMPTY;
+            }
+            let (i, d) = &discs[!(key as u32) as usize];
+            d.hit((k % w) as i64, (k / w) as i64, cam, depths).map_or(EMPTY, |t| pack(t, *i as usize))
         })
         .collect()
 }
@@ -245,4 +263,44 @@ fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + S
 /// measurements (confidence below 1 counts as 1); `fuse.wgsl`'s `resolve` computes the same.
 pub fn predicted_sigma(sigma_m: f32, confidence: f32) -> f32 {
     sigma_m / confidence.max(1.0).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Every pixel a disc's ray test accepts lies in its box, wide-angle corners and tilted
+        /// discs included.
+        #[test]
+        fn the_pixel_box_holds_every_pixel_the_disc_covers(
+            x in -0.04f32..0.04, y in -0.04f32..0.04, z in 0.004f32..0.06,
+            theta in 0.0f32..1.5, phi in 0.0f32..6.3, r_mm in 0.05f32..1.5,
+        ) {
+            let cam = PinholeCamera::new(320, 320, 160.0, 160.0, 159.5, 159.5);
+            let depths = SplatDepths { min_m: 0.002, max_m: 0.25, blend_m: 0.001, stable: 10.0 };
+            let surfel = Surfel {
+                position_m: Point3::new(x, y, z),
+                normal: Vector3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), -theta.cos()),
+                radius_m: r_mm * 1e-3,
+                colour: [0; 3],
+                confidence: 1.0,
+                t0: 0,
+                t: 0,
+                albedo: 0.0,
+                sigma_m: 0.0,
+                warp_m: Vector3::zeros(),
+            };
+            let Some(d) = Disc::new(&surfel, &nalgebra::Isometry3::identity(), &cam, &depths) else { return Ok(()) };
+            let (u0, v0) = ((160.0 * x / z + 159.5).round() as i64, (160.0 * y / z + 159.5).round() as i64);
+            for py in (v0 - 12).max(0)..=(v0 + 12).min(319) {
+                for px in (u0 - 12).max(0)..=(u0 + 12).min(319) {
+                    if d.hit(px, py, &cam, &depths).is_some() {
+                        prop_assert!(d.x.0 <= px && px <= d.x.1 && d.y.0 <= py && py <= d.y.1, "pixel ({px}, {py}) outside {:?} {:?}", d.x, d.y);
+                    }
+                }
+            }
+        }
+    }
 }

@@ -354,18 +354,34 @@ fn disc(s: Surfel) -> Disc {
     if (p.z <= P.min_depth || p.z > P.max_depth) { return d; }
     d.p = p;
     d.n = rot_cam(s.nrm);
-    let u = P.fx * p.x / p.z + P.cx;
-    let v = P.fy * p.y / p.z + P.cy;
-    let r_px = s.radius * max(P.fx, P.fy) / p.z;
-    let half = i32(min(ceil(1.25 * r_px), 12.0));
-    let u0 = i32(round_away(u));
-    let v0 = i32(round_away(v));
     d.np = dot(d.n, p);
     d.r2 = s.radius * s.radius;
-    d.lo = vec2<i32>(max(u0 - half, 0), max(v0 - half, 0));
-    d.hi = vec2<i32>(min(u0 + half, i32(P.width) - 1), min(v0 + half, i32(P.height) - 1));
+    // surfel_cpu::splat::pixel_box: the projection of the disc's axis-aligned bounding box.
+    let e = s.radius * sqrt(max(vec3<f32>(0.0), vec3<f32>(1.0) - d.n * d.n));
+    let z_min = max(P.min_depth, 1e-6);
+    let z_lo = max(p.z - e.z, z_min);
+    let z_hi = max(p.z + e.z, z_min);
+    let sx = box_span(p.x, e.x, z_lo, z_hi, p.z, P.fx, P.cx, i32(P.width));
+    let sy = box_span(p.y, e.y, z_lo, z_hi, p.z, P.fy, P.cy, i32(P.height));
+    d.lo = vec2<i32>(sx.x, sy.x);
+    d.hi = vec2<i32>(sx.y, sy.y);
     d.ok = true;
     return d;
+}
+
+// One axis of surfel_cpu::splat::pixel_box: the first and last pixel, capped at 12 from the
+// rounded centre and clipped to the image.
+fn box_span(c: f32, e: f32, z_lo: f32, z_hi: f32, z: f32, f: f32, centre: f32, size: i32) -> vec2<i32> {
+    let a = (c - e) / z_lo;
+    let b = (c - e) / z_hi;
+    let g = (c + e) / z_lo;
+    let h = (c + e) / z_hi;
+    let lo = min(min(a, b), min(g, h)) * f + centre;
+    let hi = max(max(a, b), max(g, h)) * f + centre;
+    let mid = i32(round_away(f * c / z + centre));
+    let first = max(max(i32(ceil(lo - 1e-3)), mid - 12), 0);
+    let last = min(min(i32(floor(hi + 1e-3)), mid + 12), size - 1);
+    return vec2<i32>(first, last);
 }
 
 // surfel_cpu::splat::Disc::hit: the intersection depth, or -1 for a miss.
