@@ -258,6 +258,30 @@ mod tests {
     }
 
     #[test]
+    fn the_percent_of_path_divides_by_the_path_the_estimate_covers() {
+        let gt = traj(60);
+        // The first 15 poses only, with alternating ±1 mm: the ATE is 1 mm.
+        let est: Vec<_> = gt[..15]
+            .iter()
+            .enumerate()
+            .map(|(i, p)| StampedPose { timestamp_s: p.timestamp_s, t_world_cam: Iso3::translation(0.0, if i % 2 == 0 { 0.001 } else { -0.001 }, 0.0) * p.t_world_cam })
+            .collect();
+        let m = report::evaluate(&est, &gt, None, &report::EvalOptions::default());
+        let (covered, whole) = (path_length_m(&gt[..15]), path_length_m(&gt));
+        assert!(covered < 0.5 * whole, "{covered} {whole}");
+        assert!((m["path_length_m"] - covered).abs() < 1e-12 && (m["gt_path_length_m"] - whole).abs() < 1e-12, "{m:?}");
+        assert!((m["ate_percent_of_path"] - 100.0 * m["ate_rmse_m"] / covered).abs() < 1e-9, "{m:?}");
+        // A whole run covers the whole path.
+        let full = report::evaluate(&gt, &gt, None, &report::EvalOptions::default());
+        assert!((full["path_length_m"] - whole).abs() < 1e-12);
+        // No pose matched: no path, no percentage.
+        let late: Vec<_> = est.iter().map(|p| StampedPose { timestamp_s: p.timestamp_s + 100.0, ..*p }).collect();
+        let none = report::evaluate(&late, &gt, None, &report::EvalOptions::default());
+        assert_eq!(none["path_length_m"], 0.0);
+        assert!(!none.contains_key("ate_percent_of_path"));
+    }
+
+    #[test]
     fn stats_match_hand_computation() {
         let s = Stats::of(&[3.0, 1.0, 2.0, 4.0]).unwrap();
         assert_eq!((s.mean, s.median, s.min, s.max, s.count), (2.5, 2.5, 1.0, 4.0, 4));

@@ -7,7 +7,7 @@ use super::live::live_surface_error;
 use super::rpe::{Delta, rpe};
 use super::surface::{SurfaceOptions, surface_error};
 use super::warp::{WallMotion, warp_error};
-use super::{align_recent, align_trajectory, ate, path_length_m};
+use super::{align_recent, align_trajectory, associate, ate, path_length_m};
 use capsule_slam_framework::geometry::{Iso3, StampedPose};
 use capsule_slam_framework::map::SurfelSet;
 
@@ -42,7 +42,9 @@ impl Default for EvalOptions {
     }
 }
 
-/// Trajectory (and optionally surface) figures. Keys: `path_length_m`, `ate_rmse_m` (SE(3)),
+/// Trajectory (and optionally surface) figures. Keys: `path_length_m` (the true path the estimate
+/// covers, [`covered_path_length_m`]; `ate_percent_of_path` divides by it), `gt_path_length_m`
+/// (the whole ground truth's), `ate_rmse_m` (SE(3)),
 /// `ate_rmse_sim3_m`, `sim3_scale`, `ate_mean_m`, `ate_median_m`, `ate_max_m` (of the chosen
 /// alignment), `ate_percent_of_path`, `rpe_trans_rmse_m`, `rpe_rot_rmse_deg`,
 /// `rpe_trans_per_m`, `rpe_rot_deg_per_m`, and with a map `surface_rmse_m`,
@@ -51,8 +53,9 @@ impl Default for EvalOptions {
 /// truth observed in at least 10 frames).
 pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet, &SurfelSet)>, opts: &EvalOptions) -> BTreeMap<String, f64> {
     let mut m = BTreeMap::new();
-    let path = path_length_m(gt);
+    let path = covered_path_length_m(est, gt, opts.tolerance_s);
     m.insert("path_length_m".to_owned(), path);
+    m.insert("gt_path_length_m".to_owned(), path_length_m(gt));
     let se3 = ate(est, gt, opts.tolerance_s, false);
     let sim3 = ate(est, gt, opts.tolerance_s, true);
     if let Some(a) = &se3 {
@@ -94,10 +97,21 @@ pub fn evaluate(est: &[StampedPose], gt: &[StampedPose], map: Option<(&SurfelSet
     m
 }
 
+/// Length of the ground-truth path the estimate covers: through the true poses from the first
+/// to the last one matched to an estimated pose (a run of part of a sequence, or one that stopped
+/// early, is scored against the path it travelled, not the whole sequence's). 0 without a match.
+pub fn covered_path_length_m(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64) -> f64 {
+    let stamps: Vec<f64> = associate(est, gt, tolerance_s).iter().map(|(_, g)| g.timestamp_s).collect();
+    let (Some(first), Some(last)) = (stamps.iter().copied().reduce(f64::min), stamps.iter().copied().reduce(f64::max)) else { return 0.0 };
+    let covered: Vec<StampedPose> = gt.iter().filter(|g| g.timestamp_s >= first && g.timestamp_s <= last).copied().collect();
+    path_length_m(&covered)
+}
+
 /// A readable table of the figures (millimetres and degrees).
 pub fn table(m: &BTreeMap<String, f64>) -> String {
-    let rows: [(&str, &str, f64, &str); 25] = [
-        ("path_length_m", "path length", 1e3, "mm"),
+    let rows: [(&str, &str, f64, &str); 26] = [
+        ("path_length_m", "path length (covered)", 1e3, "mm"),
+        ("gt_path_length_m", "path length (whole truth)", 1e3, "mm"),
         ("ate_rmse_m", "ATE RMSE, SE(3)", 1e3, "mm"),
         ("ate_rmse_sim3_m", "ATE RMSE, Sim(3)", 1e3, "mm"),
         ("sim3_scale", "Sim(3) scale", 1.0, ""),
