@@ -120,6 +120,46 @@ fn an_interrupted_run_keeps_what_it_wrote() {
 }
 
 #[test]
+fn a_run_with_no_usable_depth_says_it_failed_and_why() {
+    // All-zero depth: every frame runs, nothing is fused. The run used to end `complete`.
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));
+    fixtures::write_dataset(&data, 5);
+    let cam = fixtures::camera();
+    for i in 0..5 {
+        let empty = capsule_slam_framework::DepthMap::new(cam.width as usize, cam.height as usize);
+        capsule_slam_io::images::write_depth(&data.join(format!("depth/{i:04}.png")), &empty, cam.depth_scale).unwrap();
+    }
+    let err = run_on(&data, &out, &config(&[])).unwrap_err();
+    assert!(matches!(err, capsule_slam_framework::PipelineError::NoResult(_)), "{err}");
+    assert!(err.to_string().contains("map is empty after 5 frames"), "{err}");
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let status = json["status"].as_str().unwrap();
+    assert!(status.starts_with("failed") && status.contains("usable depth"), "{status}");
+    assert_eq!(json["frames"], 5, "every frame ran and is recorded");
+    assert_eq!(tum::read_trajectory(&out.join("trajectory.txt")).unwrap().len(), 5);
+}
+
+#[test]
+fn a_rerun_that_is_cut_off_leaves_no_older_result_beside_its_own() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));
+    fixtures::write_dataset(&data, 4);
+    run_on(&data, &out, &config(&[])).unwrap();
+    assert!(out.join("map.ply").exists());
+    // A second run into the same folder, killed right after it started.
+    drop(RunWriter::create(&out, "").unwrap());
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["status"], "running");
+    assert!(!out.join("map.ply").exists(), "the older run's map is gone");
+    assert!(tum::read_trajectory(&out.join("trajectory.txt")).unwrap().is_empty());
+    // A file the run does not write is left alone.
+    std::fs::write(out.join("notes.txt"), "mine").unwrap();
+    run_on(&data, &out, &config(&[])).unwrap();
+    assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "mine");
+}
+
+#[test]
 fn initial_pose_ground_truth_starts_at_the_first_ground_truth_pose() {
     let tmp = tempfile::tempdir().unwrap();
     let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));

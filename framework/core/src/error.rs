@@ -174,4 +174,8 @@ pub enum PipelineError {
     /// Reading input or writing output failed.
     #[error(transparent)]
     Load(#[from] LoadError),
+    /// Every frame ran, but the run could not do its job (e.g. no frame gave usable depth, so
+    /// there is no map): what it wrote is kept, its summary says so.
+    #[error("{0}")]
+    NoResult(String),
 }

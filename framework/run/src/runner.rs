@@ -86,6 +86,9 @@ pub fn run(
     if let (true, Some(set)) = (opts.write_map, &map) {
         writer.write_map(set)?;
     }
+    if failure.is_none() && !records.is_empty() && map.as_ref().is_some_and(SurfelSet::is_empty) {
+        failure = Some(PipelineError::NoResult(no_map_reason(&records)));
+    }
     let mut summary = Summary::from_records(&records);
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
@@ -101,6 +104,17 @@ pub fn run(
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// Why a run that processed `records` ended with an empty map: how many frames were lost and
+/// what to check.
+fn no_map_reason(records: &[FrameRecord]) -> String {
+    let lost = records.iter().filter(|r| r.status == capsule_slam_framework::stage::TrackStatus::Lost).count();
+    format!(
+        "the map is empty after {} frames ({lost} lost): no frame gave usable depth; check the depth images (all zero, saturated or \
+         black frames?), the depth range (`min_depth_m`, `max_depth_m` of the tracker and fuser) and the depth stage",
+        records.len()
+    )
 }
 
 /// The figures against the input's ground truth, into `summary`: trajectory and surface

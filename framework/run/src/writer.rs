@@ -1,4 +1,5 @@
-//! The output folder of a run: `config.toml` (written first), `trajectory.txt`, `frames.csv`
+//! The output folder of a run: `summary.json` saying `running` and `config.toml` (written
+//! first, a previous run's outputs removed), `trajectory.txt`, `frames.csv`
 //! and `counters.jsonl` (one line per frame, flushed at once, so an interrupted run keeps every
 //! finished frame), then `map.ply` and `summary.json` at the end (also after a failure).
 
@@ -45,8 +46,22 @@ pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_d
 
 impl RunWriter {
     /// Creates the folder and writes `config.toml`; opens the streamed files.
+    ///
+    /// A previous run's outputs in the folder go first (the files a run writes at its end:
+    /// `map.ply`, `trajectory_online.txt`, `closures.csv`; the streamed ones are truncated), and
+    /// `summary.json` says `running` until the run writes its own: a run that fails early or is
+    /// killed never leaves an older run's map and "complete" beside its own files.
     pub fn create(dir: &Path, resolved_config: &str) -> Result<Self, LoadError> {
         std::fs::create_dir_all(dir).map_err(|e| LoadError::io(dir, e))?;
+        for name in ["map.ply", "trajectory_online.txt", CLOSURES_FILE] {
+            let p = dir.join(name);
+            match std::fs::remove_file(&p) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(LoadError::io(&p, e)),
+                _ => {}
+            }
+        }
+        let summary = dir.join("summary.json");
+        std::fs::write(&summary, "{\"status\": \"running\"}\n").map_err(|e| LoadError::io(&summary, e))?;
         let cfg = dir.join("config.toml");
         std::fs::write(&cfg, resolved_config).map_err(|e| LoadError::io(&cfg, e))?;
         let open = |name: &str, header: Option<&str>| -> Result<BufWriter<File>, LoadError> {

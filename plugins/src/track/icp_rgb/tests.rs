@@ -143,6 +143,32 @@ fn a_frame_with_no_valid_depth_is_lost_and_says_why() {
 }
 
 #[test]
+fn with_nothing_to_track_against_only_the_first_frame_counts_as_tracked() {
+    // Frames without depth and no model: the first defines the origin, the second has no
+    // reference and is lost (it used to be `Tracked` with its prior pose); a frame with depth
+    // after them tracks against the one before it again once that one has depth.
+    let ph = phantom(1, 300, 0.0);
+    let (mut a, mut b) = (rgbd(&ph, 50), rgbd(&ph, 51));
+    a.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.0);
+    b.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.0);
+    let (res, warnings) = track_pair(&ph, &a, &b);
+    assert_eq!(res.status, TrackStatus::Lost);
+    assert!(warnings.iter().any(|w| w.contains("nothing to track against")), "{warnings:?}");
+    let rig = rig(&ph);
+    let mut t = tracker(IcpRgbParams::default(), &ph);
+    let ta = a.gt_t_world_cam.unwrap();
+    let mut r = StageReport::default();
+    assert_eq!(t.track(&a, None, &ta, &mut Context::new(50, &rig, None, &mut r)).unwrap().status, TrackStatus::Tracked);
+    let (c, d) = (rgbd(&ph, 52), rgbd(&ph, 53));
+    assert_eq!(t.track(&c, None, &ta, &mut Context::new(52, &rig, None, &mut r)).unwrap().status, TrackStatus::Lost);
+    let tc = c.gt_t_world_cam.unwrap();
+    let res = t.track(&d, None, &tc, &mut Context::new(53, &rig, None, &mut r)).unwrap();
+    assert_eq!(res.status, TrackStatus::Tracked);
+    let e = (tc.inverse() * d.gt_t_world_cam.unwrap()).inverse() * (tc.inverse() * res.t_world_cam);
+    assert!(e.translation.vector.norm() < 1e-4, "{e:?}");
+}
+
+#[test]
 fn a_textureless_plane_seen_head_on_is_lost_as_unconstrained() {
     let ph = phantom(1, 300, 0.0);
     let mut a = rgbd(&ph, 50);
