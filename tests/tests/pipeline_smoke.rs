@@ -160,6 +160,18 @@ fn a_rerun_that_is_cut_off_leaves_no_older_result_beside_its_own() {
 }
 
 #[test]
+fn a_corrupt_file_read_only_to_score_the_run_costs_its_figures_not_the_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));
+    fixtures::write_dataset(&data, 4);
+    std::fs::write(data.join("gt_surface.ply"), b"ply\nformat nonsense\n").unwrap();
+    let summary = run_on(&data, &out, &config(&[])).unwrap();
+    assert_eq!(summary.status, "complete");
+    assert!(summary.warnings.iter().any(|w| w.contains("surface figures off") && w.contains("gt_surface.ply")), "{:?}", summary.warnings);
+    assert!(!summary.metrics.contains_key("surface_rmse_m") && summary.ate_rmse_m.is_some());
+}
+
+#[test]
 fn initial_pose_ground_truth_starts_at_the_first_ground_truth_pose() {
     let tmp = tempfile::tempdir().unwrap();
     let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));

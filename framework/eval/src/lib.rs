@@ -264,7 +264,10 @@ mod tests {
         let est: Vec<_> = gt[..15]
             .iter()
             .enumerate()
-            .map(|(i, p)| StampedPose { timestamp_s: p.timestamp_s, t_world_cam: Iso3::translation(0.0, if i % 2 == 0 { 0.001 } else { -0.001 }, 0.0) * p.t_world_cam })
+            .map(|(i, p)| StampedPose {
+                timestamp_s: p.timestamp_s,
+                t_world_cam: Iso3::translation(0.0, if i % 2 == 0 { 0.001 } else { -0.001 }, 0.0) * p.t_world_cam,
+            })
             .collect();
         let m = report::evaluate(&est, &gt, None, &report::EvalOptions::default());
         let (covered, whole) = (path_length_m(&gt[..15]), path_length_m(&gt));

@@ -43,7 +43,7 @@ pub fn run(
     let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let mut records = Vec::with_capacity(n);
     let mut failure: Option<PipelineError> = None;
-    let truth = load_truth(dataset)?;
+    let (truth, truth_warning) = load_truth(dataset);
     let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
     let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
     for i in 0..n {
@@ -90,6 +90,7 @@ pub fn run(
         failure = Some(PipelineError::NoResult(no_map_reason(&records)));
     }
     let mut summary = Summary::from_records(&records);
+    summary.warnings.extend(truth_warning);
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
@@ -139,7 +140,9 @@ fn evaluate_run(
     summary.metrics = evaluate(pipeline.trajectory(), gt, surfaces, eval_opts);
     summary.ate_rmse_m = summary.metrics.remove("ate_rmse_m");
     let last = records.last().map_or(0, |r| r.index);
-    match (map, live_truth(dataset, truth, last)?) {
+    let live =
+        live_truth(dataset, truth, last).unwrap_or_else(|e| LiveTruth::Missing(format!("live surface error off: {e}; the file is read only to score the run")));
+    match (map, live) {
         (Some(m), LiveTruth::At(now)) => {
             // Monocular scale is only estimated: its live surface is aligned with Sim(3).
             let live_opts = EvalOptions { sim3: pipeline.depth_source() == DepthSource::Estimated, ..*eval_opts };
@@ -168,9 +171,18 @@ fn evaluate_run(
 }
 
 /// The input's ground-truth surface, when it has one.
-fn load_truth(dataset: &Dataset) -> Result<Option<SurfelSet>, PipelineError> {
+///
+/// It only scores the run: a file that cannot be read leaves the surface figures out with a
+/// warning (returned) instead of stopping the run.
+fn load_truth(dataset: &Dataset) -> (Option<SurfelSet>, Option<String>) {
     let truth_file = dataset.dir().join(GT_SURFACE_FILE);
-    Ok(if truth_file.exists() { Some(ply::read_surfels(&truth_file)?) } else { None })
+    if !truth_file.exists() {
+        return (None, None);
+    }
+    match ply::read_surfels(&truth_file) {
+        Ok(set) => (Some(set), None),
+        Err(e) => (None, Some(format!("surface figures off: {e}; the file is read only to score the run: fix or remove it"))),
+    }
 }
 
 fn stage_error(pipeline: &Pipeline, frame: usize, source: capsule_slam_framework::error::StageError) -> PipelineError {

@@ -353,17 +353,11 @@ impl IcpRgb {
         ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let Some(reference) = reference else {
-            // Nothing to track against. The first frame defines the origin: keep the prior.
-            // Later, neither the model nor the previous frame has depth (frames without usable
-            // depth so far): the pose is not measured, so the frame is lost; it becomes the
-            // reference for the next one.
-            let first = self.previous.is_none();
-            self.previous = Some(live);
-            if first {
-                return Ok((TrackResult::tracked(t_world_prev * prior), None));
-            }
-            ctx.warn("tracking lost: nothing to track against: neither the model nor the previous frame has valid depth");
-            return Ok((TrackResult { status: TrackStatus::Lost, ..TrackResult::tracked(t_world_prev * prior) }, None));
+            // Nothing to track against: the first frame is the origin (the prior); a later one is lost.
+            let first = self.previous.replace(live).is_none();
+            let status = if first { TrackStatus::Tracked } else { TrackStatus::Lost };
+            (!first).then(|| ctx.warn("tracking lost: nothing to track against: neither the model nor the previous frame has valid depth"));
+            return Ok((TrackResult { status, ..TrackResult::tracked(t_world_prev * prior) }, None));
         };
         let photo = match (self.params.rgb_reference, &self.previous) {
             (RgbReference::PreviousFrame, Some(p)) => p,
