@@ -284,6 +284,29 @@ fn a_plugin_library_loads_lists_its_plugins_and_runs_in_a_pipeline() {
 }
 
 #[test]
+fn a_plugin_library_named_without_a_directory_is_the_file_named_and_a_directory_is_not_one() {
+    // A bare file name: the file in the working directory, not a search of the system's
+    // library path by the dynamic loader (which does not look in the working directory).
+    let tmp = tempfile::tempdir().unwrap();
+    let lib = example_library();
+    let name = lib.file_name().unwrap();
+    std::fs::copy(&lib, tmp.path().join(name)).unwrap();
+    // (cargo's LD_LIBRARY_PATH holds the example's own folder: without it, a search finds nothing.)
+    let o = bin().current_dir(tmp.path()).env_remove("LD_LIBRARY_PATH").args(["--plugin-lib", name.to_str().unwrap(), "plugins"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("example-gamma (preprocessor)"));
+    let (ok, _, err) = output(&["--plugin-lib", tmp.path().to_str().unwrap(), "plugins"]);
+    assert!(!ok);
+    assert!(err.contains("is a directory") && err.contains("library file itself"), "{err}");
+    // A file that is no library: the loader's own reason is kept.
+    let bad = tmp.path().join("libbad.so");
+    std::fs::write(&bad, "not a library").unwrap();
+    let (ok, _, err) = output(&["--plugin-lib", bad.to_str().unwrap(), "plugins"]);
+    assert!(!ok);
+    assert!(err.contains("dlopen failed: ") && err.contains("libbad.so: "), "{err}");
+}
+
+#[test]
 fn a_missing_plugin_library_names_the_path_and_the_fix() {
     let (ok, _, err) = output(&["--plugin-lib", "/nonexistent/libmine.so", "plugins"]);
     assert!(!ok);

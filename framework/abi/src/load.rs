@@ -63,6 +63,9 @@ pub fn load_library(registry: &mut Registry, path: &Path) -> Result<Vec<&'static
 
 /// Opens the library at `path` and returns its plugins. The library is never unloaded.
 pub fn load(path: &Path) -> Result<Vec<&'static LoadedPlugin>, RegistryError> {
+    if path.is_dir() {
+        return Err(library_error(path, "is a directory", "pass the library file itself (its lib*.so / *.dylib / *.dll)"));
+    }
     if !path.is_file() {
         return Err(library_error(
             path,
@@ -70,9 +73,13 @@ pub fn load(path: &Path) -> Result<Vec<&'static LoadedPlugin>, RegistryError> {
             "build the plugin library (e.g. `cargo build --release -p capsule-slam-dylib-example`) and pass the path of its lib*.so / *.dylib / *.dll",
         ));
     }
+    // The file itself: a bare name (no directory) would make the dynamic loader search the
+    // system's library path instead of opening the file the user named.
+    let file = std::fs::canonicalize(path).map_err(|e| library_error(path, format!("cannot be resolved: {e}"), "pass a readable file"))?;
     // SAFETY: loading a library runs its initialisers; the user asked for this library.
-    let lib = unsafe { libloading::Library::new(path) }
-        .map_err(|e| library_error(path, format!("cannot be opened as a shared library: {e}"), "pass a shared library built for this platform"))?;
+    let lib = unsafe { libloading::Library::new(&file) }.map_err(|e| {
+        library_error(path, format!("cannot be opened as a shared library: {}", with_reason(&e)), "pass a shared library built for this platform")
+    })?;
     // SAFETY: the symbol, if present, is an `EntryFn` by the ABI contract.
     let entry: EntryFn = unsafe { lib.get::<EntryFn>(ENTRY_SYMBOL) }.map(|s| *s).map_err(|_| {
         library_error(
@@ -91,6 +98,17 @@ pub fn load(path: &Path) -> Result<Vec<&'static LoadedPlugin>, RegistryError> {
     let list = unsafe { list_of(list, path)? };
     let plugins = unsafe { plugins_of(list, path)? };
     Ok(plugins.into_iter().map(|p| &*Box::leak(Box::new(p))).collect())
+}
+
+/// An error with its sources (libloading's "dlopen failed" keeps the loader's reason there).
+fn with_reason(e: &dyn std::error::Error) -> String {
+    let mut out = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        out.push_str(&format!(": {s}"));
+        source = s.source();
+    }
+    out
 }
 
 /// The list, once its ABI version is known to match.
