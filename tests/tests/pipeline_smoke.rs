@@ -172,6 +172,21 @@ fn a_corrupt_file_read_only_to_score_the_run_costs_its_figures_not_the_run() {
 }
 
 #[test]
+fn a_broken_depth_image_costs_a_monocular_run_its_score_of_that_frame_not_the_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));
+    fixtures::write_dataset(&data, 4);
+    std::fs::write(data.join("depth/0002.png"), b"not a png").unwrap();
+    // Depth from the image: the input's depth only scores it.
+    let summary = run_on(&data, &out, &config(&["pipeline.depth=tsai-shah"])).unwrap();
+    assert_eq!((summary.status.as_str(), summary.frames), ("complete", 4));
+    assert!(summary.warnings.iter().any(|w| w.contains("frame 2: depth not scored") && w.contains("depth/0002.png")), "{:?}", summary.warnings);
+    // With sensor depth the same file stops the run at frame 2, naming it.
+    let err = run_on(&data, &tmp.path().join("out2"), &config(&[])).unwrap_err().to_string();
+    assert!(err.contains("depth/0002.png"), "{err}");
+}
+
+#[test]
 fn initial_pose_ground_truth_starts_at_the_first_ground_truth_pose() {
     let tmp = tempfile::tempdir().unwrap();
     let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));

@@ -160,18 +160,35 @@ impl Dataset {
 
     /// Loads frame `index`.
     pub fn load(&self, index: usize) -> Result<CameraFrame, LoadError> {
+        self.load_frame(index, true).map(|(frame, _)| frame)
+    }
+
+    /// Loads frame `index` for a pipeline that estimates depth and reads the input's only to
+    /// score it: a depth image that cannot be read leaves the frame without depth, and the
+    /// returned warning says so (an RGB image that cannot be read is still an error).
+    pub fn load_scoring_depth(&self, index: usize) -> Result<(CameraFrame, Option<String>), LoadError> {
+        self.load_frame(index, false)
+    }
+
+    fn load_frame(&self, index: usize, depth_required: bool) -> Result<(CameraFrame, Option<String>), LoadError> {
         let e =
             self.entries.get(index).ok_or_else(|| LoadError::parse(&self.dir, 0, format!("frame {index} does not exist ({} frames)", self.entries.len())))?;
         let size = Some((self.camera.width as usize, self.camera.height as usize));
         let rgb = images::read_rgb(&e.rgb, size)?;
-        let depth_m = match &e.depth {
-            Some(p) => Some(images::read_depth(p, self.camera.depth_scale, size)?),
-            None => None,
+        let (depth_m, warning) = match (&e.depth, depth_required) {
+            (Some(p), true) => (Some(images::read_depth(p, self.camera.depth_scale, size)?), None),
+            (Some(p), false) => match images::read_depth(p, self.camera.depth_scale, size) {
+                Ok(d) => (Some(d), None),
+                Err(err) => (None, Some(format!("frame {index}: depth not scored: {err} (the depth is estimated; the file is read only to score it)"))),
+            },
+            (None, _) => (None, None),
         };
         let mut masks = Masks::new();
         if let Some(m) = &self.out_of_view {
             masks.insert(MASK_OUT_OF_VIEW, m.clone());
         }
-        Ok(CameraFrame { index, timestamp_s: e.timestamp_s, views: Views::Mono(rgb), depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() })
+        let frame =
+            CameraFrame { index, timestamp_s: e.timestamp_s, views: Views::Mono(rgb), depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() };
+        Ok((frame, warning))
     }
 }

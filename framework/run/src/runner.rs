@@ -43,12 +43,21 @@ pub fn run(
     let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let mut records = Vec::with_capacity(n);
     let mut failure: Option<PipelineError> = None;
+    let mut load_warnings: Vec<String> = Vec::new();
     let (truth, truth_warning) = load_truth(dataset);
     let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
     let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
     for i in 0..n {
         let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
-        let rec = match dataset.load(i) {
+        let loaded = if pipeline.depth_source() == DepthSource::Estimated {
+            dataset.load_scoring_depth(i).map(|(frame, warning)| {
+                load_warnings.extend(warning);
+                frame
+            })
+        } else {
+            dataset.load(i)
+        };
+        let rec = match loaded {
             Ok(frame) => pipeline.process(frame),
             Err(e) => Err(PipelineError::Load(e)),
         };
@@ -91,6 +100,7 @@ pub fn run(
     }
     let mut summary = Summary::from_records(&records);
     summary.warnings.extend(truth_warning);
+    summary.warnings.extend(load_warnings);
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
