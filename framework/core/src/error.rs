@@ -97,8 +97,8 @@ pub enum LoadError {
         /// The OS error.
         source: std::io::Error,
     },
-    /// A text file has a malformed line.
-    #[error("{}:{line}: {message}", path.display())]
+    /// A text file has a malformed line (or, at line 0, is at fault as a whole).
+    #[error("{}: {message}", at_line(path, *line))]
     Parse {
         /// The file.
         path: PathBuf,
@@ -126,6 +126,11 @@ impl LoadError {
     pub fn parse(path: impl Into<PathBuf>, line: usize, message: impl Into<String>) -> Self {
         Self::Parse { path: path.into(), line, message: message.into() }
     }
+}
+
+/// `path:line`, or the path alone for line 0 (the whole file).
+fn at_line(path: &std::path::Path, line: usize) -> String {
+    if line == 0 { path.display().to_string() } else { format!("{}:{line}", path.display()) }
 }
 
 /// An error in the plugin registry.

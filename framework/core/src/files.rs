@@ -41,8 +41,10 @@ pub fn read_light_file(path: &Path) -> Result<LightModel, LoadError> {
         let line = e.span().map_or(0, |s| text[..s.start.min(text.len())].matches('\n').count() + 1);
         LoadError::parse(path, line, format!("{} (expected keys: gain, ref_distance_m, ambient, gamma, position_m, spot_exponent, vignetting)", e.message()))
     })?;
-    if let Some((k, m)) = light.problems().into_iter().next() {
-        return Err(LoadError::parse(path, 0, format!("{k}: {m}")));
+    let problems = light.problems();
+    if !problems.is_empty() {
+        let all: Vec<String> = problems.iter().map(|(k, m)| format!("{k}: {m}")).collect();
+        return Err(LoadError::parse(path, 0, all.join("; ")));
     }
     Ok(light)
 }

@@ -65,8 +65,30 @@ impl LightModel {
         }
         if !(self.vignetting.len() == 2 || self.vignetting.len() == 3) || !self.vignetting.iter().all(|v| v.is_finite()) {
             out.push(("vignetting", "needs 2 or 3 finite coefficients v1 v2 (v3)".into()));
+        } else if let Some(r) = self.vignetting_nonpositive_at() {
+            out.push((
+                "vignetting",
+                format!(
+                    "{:?} makes V = 1 + v1 r² + v2 r⁴ (+ v3 r⁶) ≤ 0 at r = {r:.2} of the half-diagonal, inside the image: the lens would pass no light there; fit it again (`capsule-slam calibrate-light`)",
+                    self.vignetting
+                ),
+            ));
         }
         out
+    }
+
+    /// The smallest r in [0, 1] (pixel distance to the principal point over the half-diagonal,
+    /// every pixel of the image) where V(r) ≤ 0, if any (sampled every 1/1000).
+    fn vignetting_nonpositive_at(&self) -> Option<f64> {
+        (0..=1000).map(|i| f64::from(i) / 1000.0).find(|r| {
+            let r2 = r * r;
+            let (mut v, mut rk) = (1.0, 1.0);
+            for c in &self.vignetting {
+                rk *= r2;
+                v += c * rk;
+            }
+            v <= 0.0
+        })
     }
 
     /// V(u) at pixel (u, v).
@@ -153,6 +175,25 @@ impl LightModel {
 mod tests {
     use super::*;
     use proptest::prelude::{Just, prop_oneof};
+
+    #[test]
+    fn vignetting_that_passes_no_light_inside_the_image_is_a_problem() {
+        let with = |v: Vec<f64>| LightModel { vignetting: v, ..LightModel::default() };
+        // V(1) = 1 − 1.5 + 0.3 < 0: the corners would get no light.
+        let bad = with(vec![-1.5, 0.3]).problems();
+        assert!(bad.iter().any(|(k, m)| *k == "vignetting" && m.contains("≤ 0 at r = 0.89") && m.contains("calibrate-light")), "{bad:?}");
+        assert!(with(vec![-0.4, 0.05]).problems().is_empty());
+        assert!(with(vec![-0.5, -0.5]).problems().iter().any(|(k, m)| *k == "vignetting" && m.contains("r = 1.00")));
+        // Every problem at once, and no line 0 in the message.
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.path().join("light.toml");
+        let text = format!(
+            "gain = -1.0\nref_distance_m = 0.025\nambient = 0.0\ngamma = 2.2\nposition_m = [0.0, 0.0, 0.0]\nspot_exponent = 1.0\nvignetting = [-1.5, 0.3]\n"
+        );
+        std::fs::write(&path, text).unwrap_or_else(|e| panic!("{e}"));
+        let err = crate::files::read_light_file(&path).err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err.contains("gain") && err.contains("vignetting") && !err.contains(":0"), "{err}");
+    }
 
     #[test]
     fn gain_is_one_head_on_at_the_reference_distance() {
