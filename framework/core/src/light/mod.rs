@@ -187,9 +187,8 @@ mod tests {
         // Every problem at once, and no line 0 in the message.
         let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
         let path = dir.path().join("light.toml");
-        let text = format!(
-            "gain = -1.0\nref_distance_m = 0.025\nambient = 0.0\ngamma = 2.2\nposition_m = [0.0, 0.0, 0.0]\nspot_exponent = 1.0\nvignetting = [-1.5, 0.3]\n"
-        );
+        let text =
+            "gain = -1.0\nref_distance_m = 0.025\nambient = 0.0\ngamma = 2.2\nposition_m = [0.0, 0.0, 0.0]\nspot_exponent = 1.0\nvignetting = [-1.5, 0.3]\n";
         std::fs::write(&path, text).unwrap_or_else(|e| panic!("{e}"));
         let err = crate::files::read_light_file(&path).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(err.contains("gain") && err.contains("vignetting") && !err.contains(":0"), "{err}");
