@@ -42,6 +42,10 @@ pub struct RunArgs {
     /// `closures.csv`); needs an input with ground truth. Slower: a map snapshot per frame.
     #[arg(long)]
     closure_report: bool,
+    /// Write into an output folder that holds files a run does not write (they are kept; a
+    /// previous run's outputs are always replaced).
+    #[arg(long)]
+    force: bool,
 }
 
 /// The oracle that stands in for a default stage whose real plugin is not in this build.
@@ -103,8 +107,8 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     let env = BuildEnv::new(dataset.rig(), Some(input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let mut pipeline = Pipeline::build(&config, &source, &registry, &env)?;
     let out = config.output.dir.clone();
-    let mut writer =
-        RunWriter::create(&out, &pipeline.resolved_config().to_toml_string()).with_context(|| format!("creating the output folder {}", out.display()))?;
+    let mut writer = RunWriter::create_with(&out, &pipeline.resolved_config().to_toml_string(), args.force)
+        .with_context(|| format!("creating the output folder {}", out.display()))?;
 
     let n = config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };

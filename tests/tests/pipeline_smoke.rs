@@ -146,16 +146,17 @@ fn a_rerun_that_is_cut_off_leaves_no_older_result_beside_its_own() {
     let (data, out) = (tmp.path().join("data"), tmp.path().join("out"));
     fixtures::write_dataset(&data, 4);
     run_on(&data, &out, &config(&[])).unwrap();
-    assert!(out.join("map.ply").exists());
-    // A second run into the same folder, killed right after it started.
+    assert!(out.join("map.ply").exists() && out.join("summary.json").exists());
+    // A second run into the same folder, killed right after it started: no older result.
     drop(RunWriter::create(&out, "").unwrap());
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
-    assert_eq!(json["status"], "running");
-    assert!(!out.join("map.ply").exists(), "the older run's map is gone");
+    assert!(!out.join("map.ply").exists() && !out.join("summary.json").exists(), "the older run's map and summary are gone");
     assert!(tum::read_trajectory(&out.join("trajectory.txt")).unwrap().is_empty());
-    // A file the run does not write is left alone.
+    // A folder that holds a file a run does not write is refused, naming it; with force the
+    // run writes beside it and leaves it alone.
     std::fs::write(out.join("notes.txt"), "mine").unwrap();
-    run_on(&data, &out, &config(&[])).unwrap();
+    let err = RunWriter::create(&out, "").err().unwrap().to_string();
+    assert!(err.contains("notes.txt") && err.contains("--force"), "{err}");
+    drop(RunWriter::create_with(&out, "", true).unwrap());
     assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "mine");
 }
 

@@ -95,8 +95,11 @@ pub fn run(
     if let (true, Some(set)) = (opts.write_map, &map) {
         writer.write_map(set)?;
     }
-    if failure.is_none() && !records.is_empty() && map.as_ref().is_some_and(SurfelSet::is_empty) {
-        failure = Some(PipelineError::NoResult(no_map_reason(&records)));
+    if failure.is_none() && !records.is_empty() {
+        let tracked = records.iter().any(|r| r.status == capsule_slam_framework::stage::TrackStatus::Tracked);
+        if !tracked || map.as_ref().is_some_and(SurfelSet::is_empty) {
+            failure = Some(PipelineError::NoResult(no_map_reason(&records)));
+        }
     }
     let mut summary = Summary::from_records(&records);
     summary.warnings.extend(truth_warning);
@@ -117,12 +120,13 @@ pub fn run(
     }
 }
 
-/// Why a run that processed `records` ended with an empty map: how many frames were lost and
-/// what to check.
+/// Why a run that processed `records` tracked no frame or ended with an empty map: how many
+/// frames were lost and what to check.
 fn no_map_reason(records: &[FrameRecord]) -> String {
     let lost = records.iter().filter(|r| r.status == capsule_slam_framework::stage::TrackStatus::Lost).count();
+    let what = if lost == records.len() { "no frame tracked" } else { "the map is empty" };
     format!(
-        "the map is empty after {} frames ({lost} lost): no frame gave usable depth; check the depth images (all zero, saturated or \
+        "{what} after {} frames ({lost} lost): no frame gave usable depth; check the depth images (all zero, saturated or \
          black frames?), the depth range (`min_depth_m`, `max_depth_m` of the tracker and fuser) and the depth stage",
         records.len()
     )

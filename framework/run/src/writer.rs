@@ -1,5 +1,5 @@
-//! The output folder of a run: `summary.json` saying `running` and `config.toml` (written
-//! first, a previous run's outputs removed), `trajectory.txt`, `frames.csv`
+//! The output folder of a run: `config.toml` (written first, after a previous run's outputs
+//! are removed), `trajectory.txt`, `frames.csv`
 //! and `counters.jsonl` (one line per frame, flushed at once, so an interrupted run keeps every
 //! finished frame), then `map.ply` and `summary.json` at the end (also after a failure).
 
@@ -20,6 +20,10 @@ pub const CLOSURES_FILE: &str = "closures.csv";
 
 /// Per-frame counters of every stage, one JSON object a line.
 pub const COUNTERS_FILE: &str = "counters.jsonl";
+
+/// Every file a run writes into its output folder.
+pub const RUN_OUTPUTS: [&str; 8] =
+    ["config.toml", "trajectory.txt", "trajectory_online.txt", "frames.csv", COUNTERS_FILE, CLOSURES_FILE, "map.ply", "summary.json"];
 
 /// One line of `counters.jsonl`: `{"frame": N, "plugin.counter": value, ...}` (keys sorted; a
 /// non-finite value is written as `null`, as JSON has no NaN).
@@ -47,21 +51,31 @@ pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_d
 impl RunWriter {
     /// Creates the folder and writes `config.toml`; opens the streamed files.
     ///
-    /// A previous run's outputs in the folder go first (the files a run writes at its end:
-    /// `map.ply`, `trajectory_online.txt`, `closures.csv`; the streamed ones are truncated), and
-    /// `summary.json` says `running` until the run writes its own: a run that fails early or is
-    /// killed never leaves an older run's map and "complete" beside its own files.
+    /// The folder must hold nothing but a previous run's outputs ([`RUN_OUTPUTS`]), which go
+    /// first: a run that fails early or is killed never leaves an older run's map and summary
+    /// beside its own files (a killed run leaves no `summary.json`). A folder that holds other
+    /// files is refused (the error names one), unless `force`, which keeps them.
     pub fn create(dir: &Path, resolved_config: &str) -> Result<Self, LoadError> {
+        Self::create_with(dir, resolved_config, false)
+    }
+
+    /// [`RunWriter::create`], into a folder that may hold other files when `force`.
+    pub fn create_with(dir: &Path, resolved_config: &str, force: bool) -> Result<Self, LoadError> {
         std::fs::create_dir_all(dir).map_err(|e| LoadError::io(dir, e))?;
-        for name in ["map.ply", "trajectory_online.txt", CLOSURES_FILE] {
-            let p = dir.join(name);
-            match std::fs::remove_file(&p) {
-                Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(LoadError::io(&p, e)),
-                _ => {}
-            }
+        let entries = std::fs::read_dir(dir).map_err(|e| LoadError::io(dir, e))?;
+        let mut names: Vec<String> = entries.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+        names.sort();
+        if let Some(other) = names.iter().find(|n| !RUN_OUTPUTS.contains(&n.as_str())).filter(|_| !force) {
+            return Err(LoadError::parse(
+                dir,
+                0,
+                format!("the output folder holds `{other}`, which a run does not write; choose an empty or new --out, or pass --force to write beside it"),
+            ));
         }
-        let summary = dir.join("summary.json");
-        std::fs::write(&summary, "{\"status\": \"running\"}\n").map_err(|e| LoadError::io(&summary, e))?;
+        for name in names.iter().filter(|n| RUN_OUTPUTS.contains(&n.as_str())) {
+            let p = dir.join(name);
+            std::fs::remove_file(&p).map_err(|e| LoadError::io(&p, e))?;
+        }
         let cfg = dir.join("config.toml");
         std::fs::write(&cfg, resolved_config).map_err(|e| LoadError::io(&cfg, e))?;
         let open = |name: &str, header: Option<&str>| -> Result<BufWriter<File>, LoadError> {

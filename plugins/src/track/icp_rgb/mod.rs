@@ -28,6 +28,7 @@
 pub(crate) mod frames;
 mod gn;
 mod relight;
+mod start;
 mod terms;
 
 pub use terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_sigma, rgb_jacobian};
@@ -353,11 +354,7 @@ impl IcpRgb {
         ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let Some(reference) = reference else {
-            // Nothing to track against: the first frame is the origin (the prior); a later one is lost.
-            let first = self.previous.replace(live).is_none();
-            let status = if first { TrackStatus::Tracked } else { TrackStatus::Lost };
-            (!first).then(|| ctx.warn("tracking lost: nothing to track against: neither the model nor the previous frame has valid depth"));
-            return Ok((TrackResult { status, ..TrackResult::tracked(t_world_prev * prior) }, None));
+            return Ok((self.without_reference(live, t_world_prev * prior, ctx), None));
         };
         let photo = match (self.params.rgb_reference, &self.previous) {
             (RgbReference::PreviousFrame, Some(p)) => p,

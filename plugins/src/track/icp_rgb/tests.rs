@@ -143,25 +143,25 @@ fn a_frame_with_no_valid_depth_is_lost_and_says_why() {
 }
 
 #[test]
-fn with_nothing_to_track_against_only_the_first_frame_counts_as_tracked() {
-    // Frames without depth and no model: the first defines the origin, the second has no
-    // reference and is lost (it used to be `Tracked` with its prior pose); a frame with depth
-    // after them tracks against the one before it again once that one has depth.
+fn a_frame_without_usable_depth_is_lost_even_with_nothing_to_track_against() {
+    // Frames without depth and no model are lost (the first used to be `Tracked` with its prior
+    // pose, and so was every one after it); the first frame with depth is the origin, and the
+    // next one tracks against it.
     let ph = phantom(1, 300, 0.0);
+    let rig = rig(&ph);
     let (mut a, mut b) = (rgbd(&ph, 50), rgbd(&ph, 51));
     a.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.0);
     b.depth_m.data_mut().iter_mut().for_each(|d| *d = 0.0);
-    let (res, warnings) = track_pair(&ph, &a, &b);
-    assert_eq!(res.status, TrackStatus::Lost);
-    assert!(warnings.iter().any(|w| w.contains("nothing to track against")), "{warnings:?}");
-    let rig = rig(&ph);
     let mut t = tracker(IcpRgbParams::default(), &ph);
     let ta = a.gt_t_world_cam.unwrap();
     let mut r = StageReport::default();
-    assert_eq!(t.track(&a, None, &ta, &mut Context::new(50, &rig, None, &mut r)).unwrap().status, TrackStatus::Tracked);
+    for f in [&a, &b] {
+        assert_eq!(t.track(f, None, &ta, &mut Context::new(f.index, &rig, None, &mut r)).unwrap().status, TrackStatus::Lost);
+    }
+    assert!(r.warnings.iter().any(|w| w.contains("no usable depth")), "{:?}", r.warnings);
     let (c, d) = (rgbd(&ph, 52), rgbd(&ph, 53));
-    assert_eq!(t.track(&c, None, &ta, &mut Context::new(52, &rig, None, &mut r)).unwrap().status, TrackStatus::Lost);
     let tc = c.gt_t_world_cam.unwrap();
+    assert_eq!(t.track(&c, None, &tc, &mut Context::new(52, &rig, None, &mut r)).unwrap().status, TrackStatus::Tracked);
     let res = t.track(&d, None, &tc, &mut Context::new(53, &rig, None, &mut r)).unwrap();
     assert_eq!(res.status, TrackStatus::Tracked);
     let e = (tc.inverse() * d.gt_t_world_cam.unwrap()).inverse() * (tc.inverse() * res.t_world_cam);
