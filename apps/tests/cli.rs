@@ -51,6 +51,8 @@ fn set_overrides_reach_the_validation() {
     assert!(!ok);
     assert!(err.contains("pipeline.tracker") && err.contains("ground-truth"), "{err}");
     assert!(err.contains("plugins.sensor.max_depth_m"), "{err}");
+    // The problems are blamed on the --set overrides as well as on the config they amend.
+    assert!(err.contains("the built-in default config with --set pipeline.tracker=icp-magic"), "{err}");
 }
 
 #[test]

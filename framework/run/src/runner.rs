@@ -49,15 +49,7 @@ pub fn run(
     let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
     for i in 0..n {
         let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
-        let loaded = if pipeline.depth_source() == DepthSource::Estimated {
-            dataset.load_scoring_depth(i).map(|(frame, warning)| {
-                load_warnings.extend(warning);
-                frame
-            })
-        } else {
-            dataset.load(i)
-        };
-        let rec = match loaded {
+        let rec = match load(dataset, pipeline, i, &mut load_warnings) {
             Ok(frame) => pipeline.process(frame),
             Err(e) => Err(PipelineError::Load(e)),
         };
@@ -95,11 +87,8 @@ pub fn run(
     if let (true, Some(set)) = (opts.write_map, &map) {
         writer.write_map(set)?;
     }
-    if failure.is_none() && !records.is_empty() {
-        let tracked = records.iter().any(|r| r.status == capsule_slam_framework::stage::TrackStatus::Tracked);
-        if !tracked || map.as_ref().is_some_and(SurfelSet::is_empty) {
-            failure = Some(PipelineError::NoResult(no_map_reason(&records)));
-        }
+    if failure.is_none() {
+        failure = no_result(&records, map.as_ref());
     }
     let mut summary = Summary::from_records(&records);
     summary.warnings.extend(truth_warning);
@@ -118,6 +107,30 @@ pub fn run(
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// Frame `i`; a pipeline that estimates depth reads the input's only to score it, so a depth
+/// image that cannot be read costs that score (a warning), not the run.
+fn load(
+    dataset: &Dataset,
+    pipeline: &Pipeline,
+    i: usize,
+    warnings: &mut Vec<String>,
+) -> Result<capsule_slam_framework::CameraFrame, capsule_slam_framework::LoadError> {
+    if pipeline.depth_source() != DepthSource::Estimated {
+        return dataset.load(i);
+    }
+    let (frame, warning) = dataset.load_scoring_depth(i)?;
+    warnings.extend(warning);
+    Ok(frame)
+}
+
+/// The failure of a run that processed every frame of `records` but could not do its job: no
+/// frame tracked, or an empty map at the end.
+fn no_result(records: &[FrameRecord], map: Option<&SurfelSet>) -> Option<PipelineError> {
+    let tracked = records.iter().any(|r| r.status == capsule_slam_framework::stage::TrackStatus::Tracked);
+    let empty = map.is_some_and(SurfelSet::is_empty);
+    (!records.is_empty() && (!tracked || empty)).then(|| PipelineError::NoResult(no_map_reason(records)))
 }
 
 /// Why a run that processed `records` tracked no frame or ended with an empty map: how many
