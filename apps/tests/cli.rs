@@ -309,6 +309,16 @@ fn a_plugin_library_named_without_a_directory_is_the_file_named_and_a_directory_
 }
 
 #[test]
+fn an_os_error_is_told_once() {
+    let (ok, _, err) = output(&["eval", "--gt", "/nonexistent/gt.txt", "--est", "/nonexistent/est.txt"]);
+    assert!(!ok);
+    assert!(err.contains("/nonexistent/gt.txt") && err.matches("os error").count() == 1, "{err}");
+    let (ok, _, err) = output(&["run", "--input", "/nonexistent/seq", "-q"]);
+    assert!(!ok);
+    assert_eq!(err.matches("not found").count(), 1, "{err}");
+}
+
+#[test]
 fn a_missing_plugin_library_names_the_path_and_the_fix() {
     let (ok, _, err) = output(&["--plugin-lib", "/nonexistent/libmine.so", "plugins"]);
     assert!(!ok);

@@ -114,7 +114,7 @@ fn an_interrupted_run_keeps_what_it_wrote() {
     let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
     assert_eq!(csv.lines().count(), 7);
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
-    assert!(json["status"].as_str().unwrap().starts_with("failed"), "{}", json["status"]);
+    assert!(json["status"].as_str().unwrap().starts_with("failed at frame 6: "), "{}", json["status"]);
     assert_eq!(json["frames"], 6);
     assert!(!ply::read_surfels(&out.join("map.ply")).unwrap().is_empty());
 }

@@ -90,12 +90,13 @@ fn list(problems: &[ConfigProblem]) -> String {
 #[non_exhaustive]
 pub enum LoadError {
     /// The file could not be opened, read or written.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not a separate source: a chain printed by anyhow would
+        /// repeat it).
+        error: std::io::Error,
     },
     /// A text file has a malformed line (or, at line 0, is at fault as a whole).
     #[error("{}: {message}", at_line(path, *line))]
@@ -120,7 +121,7 @@ pub enum LoadError {
 impl LoadError {
     /// Wraps an I/O error with its path.
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        Self::Io { path: path.into(), source }
+        Self::Io { path: path.into(), error: source }
     }
     /// A parse error at a line.
     pub fn parse(path: impl Into<PathBuf>, line: usize, message: impl Into<String>) -> Self {

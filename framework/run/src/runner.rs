@@ -43,6 +43,7 @@ pub fn run(
     let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let mut records = Vec::with_capacity(n);
     let mut failure: Option<PipelineError> = None;
+    let mut failed_at: Option<usize> = None;
     let mut load_warnings: Vec<String> = Vec::new();
     let (truth, truth_warning) = load_truth(dataset);
     let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
@@ -66,6 +67,8 @@ pub fn run(
                 records.push(rec);
             }
             Err(e) => {
+                // A stage's error names its frame; a load error names the file: add the frame.
+                failed_at = (!matches!(e, PipelineError::Stage { .. })).then_some(i);
                 failure = Some(e);
                 break;
             }
@@ -100,7 +103,7 @@ pub fn run(
         summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
     }
     if let Some(f) = &failure {
-        summary.status = format!("failed: {f}");
+        summary.status = failed_at.map_or_else(|| format!("failed: {f}"), |i| format!("failed at frame {i}: {f}"));
     }
     writer.write_summary(&summary)?;
     match failure {
