@@ -22,8 +22,9 @@ pub fn read_camera_file(path: &Path) -> Result<CameraFile, LoadError> {
         )
     })?;
     let problems = cam.problems("");
-    if let Some(p) = problems.first() {
-        return Err(LoadError::parse(path, 0, format!("{}: {} (fix: {})", p.key, p.message, p.fix)));
+    if !problems.is_empty() {
+        let all: Vec<String> = problems.iter().map(|p| format!("{}: {} (fix: {})", p.key, p.message, p.fix)).collect();
+        return Err(LoadError::parse(path, 0, all.join("; ")));
     }
     Ok(cam)
 }
@@ -64,8 +65,10 @@ pub fn read_vignetting_file(path: &Path) -> Result<VignettingFile, LoadError> {
         let line = e.span().map_or(0, |s| text[..s.start.min(text.len())].matches('\n').count() + 1);
         LoadError::parse(path, line, format!("{} (expected keys: gamma, lens_and_light; `capsule-slam calibrate-vignetting` writes this file)", e.message()))
     })?;
-    if let Some((k, m)) = file.problems().into_iter().next() {
-        return Err(LoadError::parse(path, 0, format!("{k}: {m}")));
+    let problems = file.problems();
+    if !problems.is_empty() {
+        let all: Vec<String> = problems.iter().map(|(k, m)| format!("{k}: {m}")).collect();
+        return Err(LoadError::parse(path, 0, all.join("; ")));
     }
     Ok(file)
 }
@@ -101,5 +104,10 @@ mod tests {
         std::fs::write(&p, "width = 320\nheight = 320\nfx = 0.0\nfy = 160.0\ncx = 159.5\ncy = 159.5\n").unwrap();
         let e = read_camera_file(&p).unwrap_err().to_string();
         assert!(e.contains("fx"), "{e}");
+
+        // Every problem at once, and a whole-file problem shows no line 0.
+        std::fs::write(&p, "width = 0\nheight = 320\nfx = 0.0\nfy = 160.0\ncx = 159.5\ncy = 159.5\ndepth_scale = -1.0\n").unwrap();
+        let e = read_camera_file(&p).unwrap_err().to_string();
+        assert!(e.contains("width") && e.contains("fx") && e.contains("depth_scale") && !e.contains(":0"), "{e}");
     }
 }
