@@ -99,6 +99,16 @@ fn every_problem_is_reported_at_once() {
 }
 
 #[test]
+fn every_unknown_key_of_a_section_is_reported_not_just_the_first() {
+    let e = load("[pipeline]\ntracker = \"icp-rgb\"\nbogus = 1\nalso_bogus = 2\n[input]\nwhat = 3\n", &[]).unwrap_err();
+    let text = e.to_string();
+    for k in ["`bogus`", "`also_bogus`", "`what`"] {
+        assert!(text.contains(k), "{k} missing from {text}");
+    }
+    assert_eq!(e.problems.len(), 3, "{text}");
+}
+
+#[test]
 fn set_overrides_any_key_and_none_switches_stages_off() {
     let c = load(OK, &["plugins.test-points.stride=8", "pipeline.loop_closer=test-shift", r#"pipeline.preprocess=[]"#, "output.dir=elsewhere"]).unwrap();
     assert_eq!(c.plugins["test-points"]["stride"].as_integer(), Some(8));

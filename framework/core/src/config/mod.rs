@@ -191,17 +191,27 @@ impl Config {
                 problems.push(ConfigProblem::new(key.clone(), "unknown section", "use [pipeline], [input], [output], [camera] or [plugins.<name>]"));
             }
         }
+        /// A section; an unknown key is reported and left out, and the rest read again, so that
+        /// it does not hide the section's other problems (an unknown plugin next to it).
         fn section<T: serde::de::DeserializeOwned + Default>(table: &mut toml::Table, key: &str, problems: &mut Vec<ConfigProblem>) -> Option<T> {
-            match table.remove(key) {
-                None => Some(T::default()),
-                Some(v) => match v.try_into::<T>() {
-                    Ok(t) => Some(t),
+            let Some(mut v) = table.remove(key) else { return Some(T::default()) };
+            let fix = format!("see `capsule-slam config --default` for the keys of [{key}]");
+            loop {
+                match v.clone().try_into::<T>() {
+                    Ok(t) => return Some(t),
                     Err(e) => {
-                        let fix = format!("see `capsule-slam config --default` for the keys of [{key}]");
-                        problems.push(ConfigProblem::new(key, e.to_string().trim().replace('\n', " "), fix));
-                        None
+                        let message = e.to_string().trim().replace('\n', " ");
+                        let unknown = message.split("unknown field `").nth(1).and_then(|r| r.split('`').next()).map(str::to_owned);
+                        problems.push(ConfigProblem::new(key, message, fix.clone()));
+                        let removed = match (unknown, v.as_table_mut()) {
+                            (Some(field), Some(t)) => t.remove(&field).is_some(),
+                            _ => false,
+                        };
+                        if !removed {
+                            return None;
+                        }
                     }
-                },
+                }
             }
         }
         let pipeline = section::<PipelineConfig>(&mut table, "pipeline", &mut problems);
