@@ -160,3 +160,37 @@ fn odd_sizes_black_and_saturated_frames_do_not_panic() {
     let out = r.clean(&mut img, &Mask::filled(37, 23, true)).unwrap();
     assert!(out.detected.data().iter().any(|m| *m));
 }
+
+/// A 720×576 frame of reddish tissue whose brightness falls to near-black at the rim of the
+/// field of view (the capsule's light fall-off), with sensor noise of `noise` levels per channel
+/// (a fixed pseudo-random sequence), and no highlight.
+fn dark_rimmed_frame(noise: f64) -> Rgb8 {
+    let (w, h) = (720usize, 576usize);
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((state >> 33) as f64 / (1u64 << 31) as f64) * 2.0 - 1.0
+    };
+    let mut img = Rgb8::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            let r = ((x as f64 - 360.0).powi(2) + (y as f64 - 288.0).powi(2)).sqrt() / 460.0;
+            let fall = (1.0 - r).clamp(0.0, 1.0).powi(3);
+            let lin = [0.35 * fall, 0.12 * fall, 0.10 * fall];
+            let px = lin.map(|l| (f64::from(enc(l)) + noise * next()).clamp(0.0, 255.0) as u8);
+            img.set_pixel(x, y, px);
+        }
+    }
+    img
+}
+
+#[test]
+fn a_dark_noisy_periphery_holds_no_highlight() {
+    // Issue 18, item 12: over near-black, low-variance windows, noise peaks must not pass as
+    // highlights (they are neither bright nor white).
+    for noise in [3.0, 8.0] {
+        let mut img = dark_rimmed_frame(noise);
+        let out = remover().clean(&mut img, &Mask::filled(720, 576, true)).unwrap();
+        assert_eq!(out.detected.data().iter().filter(|v| **v).count(), 0, "noise ±{noise} levels");
+    }
+}
