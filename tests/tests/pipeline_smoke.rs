@@ -218,6 +218,32 @@ fn same_input_and_config_give_the_same_output() {
 }
 
 #[test]
+fn the_real_rgbd_pipelines_give_the_same_output_twice() {
+    // The linked tracker and fuser (parallel Gauss-Newton sums, atomics in the splat), not the
+    // oracles: two runs byte-identical.
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    fixtures::write_dataset(&data, 8);
+    for tracker in ["icp-rgb", "nonrigid"] {
+        let cfg = config(&[&format!("pipeline.tracker={tracker}"), "pipeline.fuser=surfel-cpu"]);
+        let (a, b) = (tmp.path().join(format!("{tracker}-a")), tmp.path().join(format!("{tracker}-b")));
+        let summary = run_on(&data, &a, &cfg).unwrap();
+        assert!(summary.frames == 8 && summary.frames_lost < 8, "{tracker}: {summary:?}");
+        run_on(&data, &b, &cfg).unwrap();
+        for f in ["trajectory.txt", "map.ply", "frames.csv"] {
+            let (x, y) = (std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap());
+            if f == "frames.csv" {
+                // Its timings differ; the rest of each row must not.
+                let rows = |t: &[u8]| String::from_utf8_lossy(t).lines().map(|l| l.split(',').take(3).collect::<Vec<_>>().join(",")).collect::<Vec<_>>();
+                assert_eq!(rows(&x), rows(&y), "{tracker}: {f}");
+            } else {
+                assert!(x == y, "{tracker}: {f} differs");
+            }
+        }
+    }
+}
+
+#[test]
 fn a_trackers_warp_moves_the_map_before_fusion_and_a_fuser_without_warp_says_so() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
