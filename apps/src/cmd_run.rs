@@ -123,14 +123,12 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
         bar.inc(1);
     });
     bar.finish_and_clear();
-    let result_kind = match &result {
-        Err(capsule_slam_framework::PipelineError::NoResult(_)) => RunEnd::NoResult,
-        _ => RunEnd::Stopped,
+    let ended = if matches!(result, Err(capsule_slam_framework::PipelineError::NoResult(_))) {
+        "run failed; what it wrote is"
+    } else {
+        "run stopped; the output so far is"
     };
-    let summary = result.with_context(|| match &result_kind {
-        RunEnd::NoResult => format!("run failed; what it wrote is in {}", out.display()),
-        RunEnd::Stopped => format!("run stopped; the output so far is in {}", out.display()),
-    })?;
+    let summary = result.with_context(|| format!("{ended} in {}", out.display()))?;
 
     print_summary(&summary, pipeline.depth_source());
     println!("outputs           {}", out.display());
@@ -194,10 +192,4 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
     for w in &summary.warnings {
         eprintln!("warning: {w}");
     }
-}
-
-/// How a run that returned an error ended: it ran every frame but has no result, or it stopped.
-enum RunEnd {
-    NoResult,
-    Stopped,
 }

@@ -22,11 +22,14 @@ pub fn read_camera_file(path: &Path) -> Result<CameraFile, LoadError> {
         )
     })?;
     let problems = cam.problems("");
-    if !problems.is_empty() {
-        let all: Vec<String> = problems.iter().map(|p| format!("{}: {} (fix: {})", p.key, p.message, p.fix)).collect();
-        return Err(LoadError::parse(path, 0, all.join("; ")));
-    }
+    every_problem(path, problems.iter().map(|p| format!("{}: {} (fix: {})", p.key, p.message, p.fix)))?;
     Ok(cam)
+}
+
+/// One error naming the file with every problem of its content, or none.
+fn every_problem(path: &Path, problems: impl Iterator<Item = String>) -> Result<(), LoadError> {
+    let all: Vec<String> = problems.collect();
+    if all.is_empty() { Ok(()) } else { Err(LoadError::parse(path, 0, all.join("; "))) }
 }
 
 /// Writes a `camera.toml`.
@@ -42,11 +45,7 @@ pub fn read_light_file(path: &Path) -> Result<LightModel, LoadError> {
         let line = e.span().map_or(0, |s| text[..s.start.min(text.len())].matches('\n').count() + 1);
         LoadError::parse(path, line, format!("{} (expected keys: gain, ref_distance_m, ambient, gamma, position_m, spot_exponent, vignetting)", e.message()))
     })?;
-    let problems = light.problems();
-    if !problems.is_empty() {
-        let all: Vec<String> = problems.iter().map(|(k, m)| format!("{k}: {m}")).collect();
-        return Err(LoadError::parse(path, 0, all.join("; ")));
-    }
+    every_problem(path, light.problems().iter().map(|(k, m)| format!("{k}: {m}")))?;
     Ok(light)
 }
 
@@ -65,11 +64,7 @@ pub fn read_vignetting_file(path: &Path) -> Result<VignettingFile, LoadError> {
         let line = e.span().map_or(0, |s| text[..s.start.min(text.len())].matches('\n').count() + 1);
         LoadError::parse(path, line, format!("{} (expected keys: gamma, lens_and_light; `capsule-slam calibrate-vignetting` writes this file)", e.message()))
     })?;
-    let problems = file.problems();
-    if !problems.is_empty() {
-        let all: Vec<String> = problems.iter().map(|(k, m)| format!("{k}: {m}")).collect();
-        return Err(LoadError::parse(path, 0, all.join("; ")));
-    }
+    every_problem(path, file.problems().iter().map(|(k, m)| format!("{k}: {m}")))?;
     Ok(file)
 }
 

@@ -80,21 +80,17 @@ impl LightModel {
     /// The smallest r in [0, 1] (pixel distance to the principal point over the half-diagonal,
     /// every pixel of the image) where V(r) ≤ 0, if any (sampled every 1/1000).
     fn vignetting_nonpositive_at(&self) -> Option<f64> {
-        (0..=1000).map(|i| f64::from(i) / 1000.0).find(|r| {
-            let r2 = r * r;
-            let (mut v, mut rk) = (1.0, 1.0);
-            for c in &self.vignetting {
-                rk *= r2;
-                v += c * rk;
-            }
-            v <= 0.0
-        })
+        (0..=1000).map(|i| f64::from(i) / 1000.0).find(|r| self.vignetting_of_r2(r * r) <= 0.0)
     }
 
     /// V(u) at pixel (u, v).
     pub fn vignetting_at(&self, cam: &PinholeCamera, u: f64, v: f64) -> f64 {
         let (du, dv) = (u - cam.cx, v - cam.cy);
-        let r2 = (du * du + dv * dv) / (cam.half_diagonal_px() * cam.half_diagonal_px());
+        self.vignetting_of_r2((du * du + dv * dv) / (cam.half_diagonal_px() * cam.half_diagonal_px()))
+    }
+
+    /// V at r² (r: distance to the principal point over the half-diagonal).
+    fn vignetting_of_r2(&self, r2: f64) -> f64 {
         let mut out = 1.0;
         let mut rk = 1.0;
         for c in &self.vignetting {
