@@ -12,6 +12,7 @@ use capsule_slam_framework::files::{read_camera_file, write_vignetting_file};
 use capsule_slam_framework::frame::Falloff;
 use capsule_slam_framework::light::vignetting::{RadialProfile, profile_falloff, radius2};
 use capsule_slam_io::images;
+use capsule_slam_io::undistort::Undistortion;
 
 /// Arguments of `calibrate-vignetting`.
 #[derive(clap::Args, Debug)]
@@ -41,7 +42,11 @@ pub fn run(args: &CalibrateVignettingArgs) -> anyhow::Result<()> {
     if !(args.gamma.is_finite() && args.gamma > 0.0) {
         bail!("--gamma {}: must be positive", args.gamma);
     }
-    let cam = read_camera_file(&args.camera)?.camera();
+    // With a lens, the frames are undistorted as `run` undistorts them: the fit is then in the
+    // pixels the stages see.
+    let lens_cam = read_camera_file(&args.camera)?.camera();
+    let undistortion = lens_cam.distortion.is_some().then(|| Undistortion::new(&lens_cam));
+    let cam = undistortion.as_ref().map_or(lens_cam.clone(), |u| u.camera().clone());
     let mut files: Vec<PathBuf> = std::fs::read_dir(&args.images)
         .with_context(|| format!("reading the flat-field folder {}", args.images.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -56,6 +61,10 @@ pub fn run(args: &CalibrateVignettingArgs) -> anyhow::Result<()> {
     let mut clipped = 0usize;
     for f in &files {
         let img = images::read_rgb(f, Some((w, h))).with_context(|| format!("flat-field frame {} (fix camera.toml or the frame)", f.display()))?;
+        let img = match &undistortion {
+            Some(u) => u.rgb(&img),
+            None => img,
+        };
         for (k, px) in img.data().chunks_exact(3).enumerate() {
             if px.iter().any(|c| *c >= 250) {
                 clipped += 1;

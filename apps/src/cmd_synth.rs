@@ -5,6 +5,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::{Context as _, anyhow};
+use capsule_slam_framework::lens::{DistortionSpec, DistortionTable, LensModel};
 use capsule_slam_phantom::writer::{contact_sheet, write_sequence};
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 use indicatif::ProgressBar;
@@ -55,9 +56,11 @@ pub struct SynthArgs {
     /// Motion-blur sub-samples per frame (1 = off).
     #[arg(long, default_value_t = 1)]
     pub motion_blur: u32,
-    /// Radial lens distortion k1 (0 = pinhole).
-    #[arg(long, default_value_t = 0.0)]
-    pub distortion_k1: f64,
+    /// A lens: `radial-tangential:k1,k2,p1,p2,k3` (or 8 numbers with k4,k5,k6) or
+    /// `equidistant:k1,k2,k3,k4` (OpenCV's models and order). The frames are rendered through it
+    /// (each pixel's own ray), `camera.toml` names it, the ground truth is the same.
+    #[arg(long)]
+    pub distortion: Option<String>,
     /// Output folder.
     #[arg(long, default_value = "phantom")]
     pub out: PathBuf,
@@ -99,9 +102,24 @@ impl SynthArgs {
         };
         s.light_offset_mm = self.light_offset_mm;
         s.motion_blur = self.motion_blur;
-        s.distortion_k1 = self.distortion_k1;
+        s.distortion = self.distortion.as_deref().map(parse_lens).transpose()?;
         Ok(s)
     }
+}
+
+/// Parses `--distortion MODEL:k1,k2,...` into a lens, with every problem named.
+fn parse_lens(text: &str) -> anyhow::Result<LensModel> {
+    let usage = "use radial-tangential:k1,k2,p1,p2,k3 (or 8 numbers) or equidistant:k1,k2,k3,k4";
+    let (model, numbers) = text.split_once(':').ok_or_else(|| anyhow!("--distortion {text}: no model name; {usage}"))?;
+    let coefficients = numbers
+        .split(',')
+        .map(|v| v.trim().parse::<f64>().map_err(|e| anyhow!("--distortion {text}: `{v}` is not a number ({e}); {usage}")))
+        .collect::<anyhow::Result<Vec<f64>>>()?;
+    let spec = DistortionSpec::Table(DistortionTable { model: model.to_owned(), coefficients, unknown: Default::default() });
+    if let Some(p) = spec.problems("--distortion").into_iter().next() {
+        return Err(anyhow!("--distortion {text}: {} ({})", p.message, p.fix));
+    }
+    spec.model().ok_or_else(|| anyhow!("--distortion {text}: {usage}"))
 }
 
 /// Renders the sequence; returns the phantom and the wall-clock ms per frame.

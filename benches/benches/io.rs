@@ -1,7 +1,10 @@
 //! Input/output costs that every run pays: decoding one 320×320 frame (colour PNG + 16-bit
-//! depth PNG) and writing a 100k-surfel map.
+//! depth PNG), undistorting it when `camera.toml` names a lens (the map built once per camera,
+//! then colour and depth remapped per frame), and writing a 100k-surfel map.
 
-use capsule_slam_framework::{DepthMap, Rgb8, Surfel, SurfelSet};
+use capsule_slam_framework::lens::LensModel;
+use capsule_slam_framework::{DepthMap, PinholeCamera, Rgb8, Surfel, SurfelSet};
+use capsule_slam_io::undistort::Undistortion;
 use capsule_slam_io::{images, ply};
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
@@ -22,6 +25,18 @@ fn io(c: &mut Criterion) {
             (r, d)
         })
     });
+    // A capsule-like barrel lens (the image corner 22 % nearer the centre) and a fisheye.
+    for (name, lens) in [
+        ("radial-tangential", LensModel::RadialTangential([-0.3, 0.1, 0.001, -0.002, 0.0, 0.0, 0.0, 0.0])),
+        ("equidistant", LensModel::Equidistant([0.05, -0.01, 0.002, -0.0005])),
+    ] {
+        let mut cam = PinholeCamera::new(320, 320, 160.0, 160.0, 159.5, 159.5);
+        cam.distortion = Some(lens);
+        cam.fov_radius_px = Some(150.4);
+        c.bench_function(&format!("undistort-map-320/{name}"), |b| b.iter(|| Undistortion::new(&cam)));
+        let u = Undistortion::new(&cam);
+        c.bench_function(&format!("undistort-frame-320/{name}"), |b| b.iter(|| (u.rgb(&rgb), u.depth(&depth))));
+    }
     let surfels = SurfelSet::new(
         (0..100_000u32)
             .map(|i| Surfel {

@@ -202,7 +202,7 @@ unsafe extern "C" fn create<T: LibraryPlugin>(
                 cam.fov_radius_px = Some(c.fov_radius_px);
             }
             if c.distortion.iter().any(|&k| k != 0.0) {
-                cam.distortion = Some(capsule_slam_framework::camera::BrownConrady::from_array(c.distortion));
+                cam.distortion = Some(capsule_slam_framework::lens::LensModel::brown_conrady(c.distortion));
             }
             let stage = Box::new(T::build(params, &cam)?);
             let slot = state_out.as_mut().ok_or("the host passed no state slot")?;

@@ -14,6 +14,7 @@ use capsule_slam_framework::context::Context;
 use capsule_slam_framework::error::{ConfigProblem, RegistryError, StageError};
 use capsule_slam_framework::frame::CameraFrame;
 use capsule_slam_framework::image::{DepthMap, Mask};
+use capsule_slam_framework::lens::LensModel;
 use capsule_slam_framework::params::ParamDoc;
 use capsule_slam_framework::registry::{BuildEnv, BuildError, ForeignPlugin, PluginEntry, Registry, Stage, StageKind};
 use capsule_slam_framework::stage::{DepthEstimate, DepthEstimator, Preprocessor};
@@ -290,7 +291,17 @@ impl LoadedPlugin {
         }
         let text = self.params_text(table).map_err(|p| BuildError::Params(vec![p]))?;
         let cam = env.rig.camera();
-        let k = cam.distortion.map_or([0.0; 5], |d| [d.k1, d.k2, d.p1, d.p2, d.k3]);
+        let k = match cam.distortion {
+            None => [0.0; 5],
+            Some(LensModel::RadialTangential(k)) if k[5..].iter().all(|v| *v == 0.0) => [k[0], k[1], k[2], k[3], k[4]],
+            Some(lens) => {
+                return Err(StageError::invalid_input(format!(
+                    "the plugin ABI carries a five-coefficient radial-tangential lens, not this {} one: build the stage with the undistorted rig (input folders are undistorted as they are read)",
+                    lens.name()
+                ))
+                .into());
+            }
+        };
         let to_u32 = |v: usize| u32::try_from(v).map_err(|_| StageError::invalid_input(format!("the image is too large for the plugin ABI ({v} pixels)")));
         let camera = AbiCamera {
             width: to_u32(cam.width)?,

@@ -1,4 +1,4 @@
-//! Pinhole camera with optional Brown–Conrady distortion and a round field-of-view mask, and
+//! Pinhole camera with an optional lens model ([`crate::lens`]) and a round field-of-view mask, and
 //! the rig (mono or stereo). Pixel centres are at integer coordinates; x right, y down,
 //! z forward (the optical axis).
 
@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigProblem;
 use crate::image::Mask;
+use crate::lens::{DistortionSpec, LensModel};
 
 /// The intrinsics file of an input folder, `camera.toml`; the `[camera]` config section has the
 /// same schema. Other tools write it, so its keys are fixed.
@@ -28,9 +29,10 @@ pub struct CameraFile {
     /// Depth PNG units per metre (TUM: 5000).
     #[serde(default = "default_depth_scale")]
     pub depth_scale: f64,
-    /// Brown–Conrady coefficients k1 k2 p1 p2 k3 (OpenCV order).
+    /// The lens model: `[k1, k2, p1, p2, k3]` (radial-tangential, OpenCV's order) or
+    /// `{ model = "radial-tangential" | "equidistant", coefficients = [...] }` ([`crate::lens`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub distortion: Option<[f64; 5]>,
+    pub distortion: Option<DistortionSpec>,
     /// Radius of the round field of view about (cx, cy), pixels.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fov_radius_px: Option<f64>,
@@ -70,9 +72,6 @@ impl CameraFile {
             format!("depth_scale = {} must be positive", self.depth_scale),
             "give depth PNG units per metre (TUM: 5000)",
         );
-        if let Some(d) = self.distortion {
-            check("distortion", d.iter().all(|v| v.is_finite()), "distortion has a non-finite value".into(), "give five finite numbers k1 k2 p1 p2 k3");
-        }
         if let Some(r) = self.fov_radius_px {
             check(
                 "fov_radius_px",
@@ -89,6 +88,9 @@ impl CameraFile {
                 "give the stereo baseline in metres, or remove the key for a mono rig",
             );
         }
+        if let Some(d) = &self.distortion {
+            out.extend(d.problems(&format!("{prefix}distortion")));
+        }
         if let Some(n) = &self.depth_noise {
             out.extend(n.problems(&format!("{prefix}depth_noise.")));
         }
@@ -104,7 +106,7 @@ impl CameraFile {
             fy: self.fy,
             cx: self.cx,
             cy: self.cy,
-            distortion: self.distortion.map(BrownConrady::from_array).filter(|d| !d.is_zero()),
+            distortion: self.distortion.as_ref().and_then(DistortionSpec::model).filter(|d| !d.is_identity()),
             fov_radius_px: self.fov_radius_px,
         }
     }
@@ -119,57 +121,9 @@ impl CameraFile {
     }
 }
 
-/// Brown–Conrady lens distortion (OpenCV's model): radial k1 k2 k3, tangential p1 p2.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct BrownConrady {
-    /// Radial r².
-    pub k1: f64,
-    /// Radial r⁴.
-    pub k2: f64,
-    /// Tangential 1.
-    pub p1: f64,
-    /// Tangential 2.
-    pub p2: f64,
-    /// Radial r⁶.
-    pub k3: f64,
-}
-
-impl BrownConrady {
-    /// From `[k1, k2, p1, p2, k3]`.
-    pub fn from_array(a: [f64; 5]) -> Self {
-        Self { k1: a[0], k2: a[1], p1: a[2], p2: a[3], k3: a[4] }
-    }
-
-    /// Whether all coefficients are zero.
-    pub fn is_zero(&self) -> bool {
-        [self.k1, self.k2, self.p1, self.p2, self.k3].iter().all(|v| *v == 0.0)
-    }
-
-    /// Distorts normalised image coordinates (x/z, y/z).
-    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-        let xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
-        (xd, yd)
-    }
-
-    /// Inverts [`BrownConrady::distort`] by fixed-point iteration (20 steps; converges for the
-    /// moderate distortion of capsule lenses within their field of view).
-    pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..20 {
-            let (dx, dy) = self.distort(x, y);
-            x -= dx - xd;
-            y -= dy - yd;
-        }
-        (x, y)
-    }
-}
-
-/// A pinhole camera. Images fed to the pipeline are taken as undistorted unless a stage says
-/// otherwise; `distortion` describes the lens for stages that model it (the phantom renderer,
-/// an undistortion preprocessor).
+/// A pinhole camera, with the lens in front of it. The stages see undistorted images: an input
+/// folder whose `camera.toml` names a lens is undistorted as it is read (`capsule-slam-io`), and
+/// the rig the stages are built with has no `distortion`; the phantom renderer models it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PinholeCamera {
     /// Width in pixels.
@@ -185,7 +139,7 @@ pub struct PinholeCamera {
     /// Principal point y, pixels.
     pub cy: f64,
     /// Lens distortion, if any.
-    pub distortion: Option<BrownConrady>,
+    pub distortion: Option<LensModel>,
     /// Radius of the round field of view about (cx, cy), pixels.
     pub fov_radius_px: Option<f64>,
 }
@@ -320,13 +274,6 @@ mod tests {
             prop_assert!((q.x - u).abs() < 1e-9 && (q.y - v).abs() < 1e-9);
         }
 
-        #[test]
-        fn undistort_inverts_distort(x in -0.6f64..0.6, y in -0.6f64..0.6) {
-            let d = BrownConrady { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.001, k3: 0.0 };
-            let (xd, yd) = d.distort(x, y);
-            let (xu, yu) = d.undistort(xd, yd);
-            prop_assert!((xu - x).abs() < 1e-8 && (yu - y).abs() < 1e-8);
-        }
     }
 
     #[test]

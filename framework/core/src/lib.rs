@@ -36,6 +36,7 @@ pub mod files;
 pub mod frame;
 pub mod geometry;
 pub mod image;
+pub mod lens;
 pub mod light;
 pub mod map;
 pub mod params;

@@ -13,6 +13,7 @@ use capsule_slam_framework::geometry::nearest_in_time;
 use capsule_slam_framework::geometry::{Iso3, StampedPose};
 use capsule_slam_framework::image::Mask;
 
+use crate::undistort::Undistortion;
 use crate::{images, tum};
 
 #[derive(Debug, Clone)]
@@ -33,6 +34,8 @@ pub struct Dataset {
     has_depth: bool,
     dropped_without_depth: usize,
     out_of_view: Option<Mask>,
+    /// The map from the lens's images to the pinhole ones, when `camera.toml` names a lens.
+    undistortion: Option<Undistortion>,
 }
 
 const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
@@ -110,12 +113,16 @@ impl Dataset {
             ));
         }
         let cam = camera.camera();
-        let out_of_view = cam.fov_radius_px.map(|_| {
-            let mut m = cam.fov_mask();
-            m.data_mut().iter_mut().for_each(|v| *v = !*v);
-            m
-        });
-        Ok(Self { dir: dir.to_owned(), camera, entries, ground_truth, has_depth, dropped_without_depth: dropped, out_of_view })
+        let undistortion = cam.distortion.is_some().then(|| Undistortion::new(&cam));
+        let out_of_view = match &undistortion {
+            Some(u) => u.out_of_view().data().iter().any(|b| *b).then(|| u.out_of_view().clone()),
+            None => cam.fov_radius_px.map(|_| {
+                let mut m = cam.fov_mask();
+                m.data_mut().iter_mut().for_each(|v| *v = !*v);
+                m
+            }),
+        };
+        Ok(Self { dir: dir.to_owned(), camera, entries, ground_truth, has_depth, dropped_without_depth: dropped, out_of_view, undistortion })
     }
 
     /// Number of frames.
@@ -138,9 +145,19 @@ impl Dataset {
         &self.camera
     }
 
-    /// The rig.
+    /// The rig the stages see: the file's, with the lens undistorted away (the frames are
+    /// undistorted as they load).
     pub fn rig(&self) -> Rig {
-        self.camera.rig()
+        match (self.camera.rig(), &self.undistortion) {
+            (rig, None) => rig,
+            (Rig::Mono(_), Some(u)) => Rig::Mono(u.camera().clone()),
+            (Rig::Stereo { baseline_m, .. }, Some(u)) => Rig::Stereo { left: u.camera().clone(), right: u.camera().clone(), baseline_m },
+        }
+    }
+
+    /// The undistortion applied to every frame, if `camera.toml` names a lens.
+    pub fn undistortion(&self) -> Option<&Undistortion> {
+        self.undistortion.as_ref()
     }
 
     /// Whether frames carry depth.
@@ -182,6 +199,10 @@ impl Dataset {
                 Err(err) => (None, Some(format!("frame {index}: depth not scored: {err} (the depth is estimated; the file is read only to score it)"))),
             },
             (None, _) => (None, None),
+        };
+        let (rgb, depth_m) = match &self.undistortion {
+            Some(u) => (u.rgb(&rgb), depth_m.map(|d| u.depth(&d))),
+            None => (rgb, depth_m),
         };
         let mut masks = Masks::new();
         if let Some(m) = &self.out_of_view {

@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use capsule_slam_framework::camera::{CameraFile, PinholeCamera};
 use capsule_slam_framework::geometry::Iso3;
+use capsule_slam_framework::lens::{DistortionSpec, LensModel};
 use capsule_slam_framework::light::LightModel;
 use shape::StomachShape;
 
@@ -86,8 +87,9 @@ pub struct PhantomSpec {
     pub light_offset_mm: f64,
     /// Sub-frame samples of motion blur (1 = none).
     pub motion_blur: u32,
-    /// Radial lens distortion k1 (0 = pinhole).
-    pub distortion_k1: f64,
+    /// The lens (none: a pinhole); `camera.toml` names it, and `run` undistorts the frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<LensModel>,
     /// Frame rate, Hz.
     pub frame_rate_hz: f64,
     /// With wall motion, the true surface is also written at every this many frames (0: only
@@ -113,7 +115,7 @@ impl PhantomSpec {
             texture: true,
             light_offset_mm: 0.0,
             motion_blur: 1,
-            distortion_k1: 0.0,
+            distortion: None,
             frame_rate_hz: 30.0,
             surface_every: 0,
             depth_noise: depth_noise::DepthNoise::None,
@@ -143,8 +145,19 @@ impl PhantomSpec {
         if !(1..=32).contains(&self.motion_blur) {
             out.push(("motion_blur", format!("{} samples: use 1 (off) to 32", self.motion_blur)));
         }
-        if !(self.distortion_k1.is_finite() && self.distortion_k1.abs() <= 0.5) {
-            out.push(("distortion_k1", format!("{} must be within ±0.5", self.distortion_k1)));
+        if let Some(lens) = &self.distortion {
+            let spec = DistortionSpec::from_model(lens);
+            out.extend(spec.problems("distortion").into_iter().map(|p| ("distortion", format!("{} ({})", p.message, p.fix))));
+            // The corner of the image must be reached by a ray (no fold inside the frame).
+            let (w, h) = self.size.size();
+            let f = 0.5 * f64::from(w.min(h));
+            let corner = (f64::from(w.max(h)) / 2.0 / f, f64::from(w.min(h)) / 2.0 / f);
+            if lens.undistort(corner.0, corner.1).is_none() {
+                out.push((
+                    "distortion",
+                    format!("{} {:?} folds over inside the image (no ray reaches its corner): weaken it", lens.name(), lens.coefficients()),
+                ));
+            }
         }
         if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
             out.push(("frame_rate_hz", format!("{} must be positive", self.frame_rate_hz)));
@@ -207,7 +220,7 @@ impl Phantom {
             cx: (f64::from(w) - 1.0) / 2.0,
             cy: (f64::from(h) - 1.0) / 2.0,
             depth_scale: 5000.0,
-            distortion: (spec.distortion_k1 != 0.0).then_some([spec.distortion_k1, 0.0, 0.0, 0.0, 0.0]),
+            distortion: spec.distortion.as_ref().map(DistortionSpec::from_model),
             fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
             baseline_m: None,
             depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model(w as usize)),

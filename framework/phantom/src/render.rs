@@ -91,7 +91,8 @@ impl Phantom {
         }
         let (mut xn, mut yn) = ((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy);
         if let Some(d) = &cam.distortion {
-            (xn, yn) = d.undistort(xn, yn);
+            // A pixel no ray reaches (beyond the lens's fold) stays empty.
+            (xn, yn) = d.undistort(xn, yn)?;
         }
         let d_cam = Vector3::new(xn, yn, 1.0).normalize();
         let d_w = pose.rotation * d_cam;

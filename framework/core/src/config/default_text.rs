@@ -43,7 +43,7 @@ pub fn default_config_text(registry: &Registry) -> String {
     let _ = writeln!(s, "\n# [camera]   # overrides the input's camera.toml (same keys)");
     let _ = writeln!(
         s,
-        "# width = 320\n# height = 320\n# fx = 160.0\n# fy = 160.0\n# cx = 159.5\n# cy = 159.5\n# depth_scale = 5000.0\n# distortion = [0.0, 0.0, 0.0, 0.0, 0.0]\n# fov_radius_px = 150.0"
+        "# width = 320\n# height = 320\n# fx = 160.0\n# fy = 160.0\n# cx = 159.5\n# cy = 159.5\n# depth_scale = 5000.0\n# distortion = [0.0, 0.0, 0.0, 0.0, 0.0]   # k1 k2 p1 p2 k3, or {{ model = \"equidistant\", coefficients = [k1, k2, k3, k4] }}\n# fov_radius_px = 150.0"
     );
     let selected: Vec<&str> = p.selected().into_iter().map(|(_, n)| n).collect();
     for e in registry.iter() {

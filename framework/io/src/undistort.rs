@@ -1,0 +1,163 @@
+//! Undistortion of an input folder's frames through a map computed once per camera (issue 18,
+//! item 6). The stages see a pinhole camera with the file's intrinsics and no lens: each of its
+//! pixels `(u, v)` looks along the ray `K⁻¹ [u v 1]ᵀ`, which the lens puts at the source pixel
+//! `K · distort(K⁻¹ [u v 1]ᵀ)` (OpenCV's `initUndistortRectifyMap` with the same camera matrix).
+//! Colour is sampled bilinearly; depth bilinearly where the four source pixels agree (within
+//! [`DEPTH_BLEND_SHARE`] of the depth) and from the nearest pixel across a depth edge, so no
+//! depth between two surfaces is invented; masks from the nearest pixel. A pixel whose ray
+//! lands outside the source image or its round field of view, or beyond the lens's fold (where
+//! the model maps two rays to one pixel), is out of view.
+
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::image::{DepthMap, Mask, Rgb8};
+
+/// Largest spread of the four depths a bilinear depth sample blends, as a share of the nearest:
+/// 2.5 mm at 50 mm, a fold of the wall; a wall slanted at 80° to the ray spreads less over a
+/// source pixel of a capsule's fisheye corner.
+pub const DEPTH_BLEND_SHARE: f32 = 0.05;
+
+/// Where one undistorted pixel reads the source image.
+#[derive(Debug, Clone, Copy)]
+struct Tap {
+    /// Indices of the bilinear 2×2 source pixels: top left, top right, bottom left, bottom right.
+    four: [u32; 4],
+    /// Bilinear weights along x and y.
+    wx: f32,
+    wy: f32,
+    /// Index of the nearest source pixel.
+    nearest: u32,
+}
+
+/// The precomputed undistortion of one camera.
+#[derive(Debug, Clone)]
+pub struct Undistortion {
+    /// The source (distorted) image size.
+    width: usize,
+    height: usize,
+    /// The camera the stages see: the same intrinsics, no lens, the field of view that the
+    /// source's covers.
+    camera: PinholeCamera,
+    /// One per undistorted pixel, row-major; `None` out of view.
+    taps: Vec<Option<Tap>>,
+    /// Out of view in the undistorted image.
+    out_of_view: Mask,
+}
+
+impl Undistortion {
+    /// The map of `source` (which must have a lens; without one every tap is the identity).
+    pub fn new(source: &PinholeCamera) -> Self {
+        let (w, h) = (source.width, source.height);
+        let lens = source.distortion;
+        let taps: Vec<Option<Tap>> = (0..w * h)
+            .map(|k| {
+                let (u, v) = ((k % w) as f64, (k / w) as f64);
+                let (x, y) = ((u - source.cx) / source.fx, (v - source.cy) / source.fy);
+                let (xd, yd) = lens.map_or((x, y), |l| l.distort(x, y));
+                // Beyond the fold a far ray lands back inside: only a pixel the inverse maps
+                // back to its own ray is seen.
+                let unfolded = lens.is_none_or(|l| l.undistort(xd, yd).is_some_and(|(xu, yu)| (xu - x).hypot(yu - y) < 1e-6 * (1.0 + x.hypot(y))));
+                let (us, vs) = (source.fx * xd + source.cx, source.fy * yd + source.cy);
+                (unfolded && source.in_fov(us, vs)).then(|| tap(us, vs, w, h))
+            })
+            .collect();
+        let mut camera = source.clone();
+        camera.distortion = None;
+        // The largest circle about the principal point inside which every pixel is seen.
+        camera.fov_radius_px = source.fov_radius_px.map(|_| {
+            let nearest_unseen = taps
+                .iter()
+                .enumerate()
+                .filter(|(_, t)| t.is_none())
+                .map(|(k, _)| ((k % w) as f64 - source.cx).hypot((k / w) as f64 - source.cy))
+                .fold(f64::INFINITY, f64::min);
+            (nearest_unseen - 0.5).min(0.5 * (w as f64).hypot(h as f64)).max(0.0)
+        });
+        let out_of_view = Mask::from_fn(w, h, |x, y| [taps[y * w + x].is_none() || !camera.in_fov(x as f64, y as f64)]);
+        Self { width: w, height: h, camera, taps, out_of_view }
+    }
+
+    /// The camera of the undistorted frames.
+    pub fn camera(&self) -> &PinholeCamera {
+        &self.camera
+    }
+
+    /// Where the undistorted image sees nothing (`true`): outside the source's image, its round
+    /// field of view, or beyond the lens's fold.
+    pub fn out_of_view(&self) -> &Mask {
+        &self.out_of_view
+    }
+
+    /// Whether an image has the source size.
+    pub fn fits(&self, size: (usize, usize)) -> bool {
+        size == (self.width, self.height)
+    }
+
+    /// The colour image undistorted (bilinear; black out of view). The image must have the
+    /// source size ([`Undistortion::fits`]).
+    pub fn rgb(&self, src: &Rgb8) -> Rgb8 {
+        let s = src.data();
+        let mut out = Rgb8::new(self.width, self.height);
+        for (px, tap) in out.data_mut().chunks_exact_mut(3).zip(&self.taps) {
+            let Some(t) = tap else { continue };
+            let [a, b, c, d] = t.four.map(|i| i as usize);
+            for ch in 0..3 {
+                let top = f32::from(s[3 * a + ch]) * (1.0 - t.wx) + f32::from(s[3 * b + ch]) * t.wx;
+                let bottom = f32::from(s[3 * c + ch]) * (1.0 - t.wx) + f32::from(s[3 * d + ch]) * t.wx;
+                px[ch] = (top * (1.0 - t.wy) + bottom * t.wy).round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        out
+    }
+
+    /// The depth map undistorted: bilinear where the four source depths are valid and within
+    /// [`DEPTH_BLEND_SHARE`] of each other, the nearest source pixel otherwise; 0 (invalid) out
+    /// of view.
+    pub fn depth(&self, src: &DepthMap) -> DepthMap {
+        let s = src.data();
+        let mut out = DepthMap::new(self.width, self.height);
+        for (px, tap) in out.data_mut().iter_mut().zip(&self.taps) {
+            let Some(t) = tap else { continue };
+            let four = t.four.map(|i| s[i as usize]);
+            let (lo, hi) = four.iter().fold((f32::INFINITY, 0.0f32), |(lo, hi), &z| (lo.min(z), hi.max(z)));
+            *px = if lo > 0.0 && lo.is_finite() && hi.is_finite() && hi - lo <= DEPTH_BLEND_SHARE * lo {
+                let top = four[0] * (1.0 - t.wx) + four[1] * t.wx;
+                let bottom = four[2] * (1.0 - t.wx) + four[3] * t.wx;
+                top * (1.0 - t.wy) + bottom * t.wy
+            } else {
+                s[t.nearest as usize]
+            };
+        }
+        out
+    }
+
+    /// A mask undistorted (nearest; `false` out of view, [`Undistortion::out_of_view`]).
+    pub fn mask(&self, src: &Mask) -> Mask {
+        let s = src.data();
+        let mut out = Mask::new(self.width, self.height);
+        for ((px, tap), out_of_view) in out.data_mut().iter_mut().zip(&self.taps).zip(self.out_of_view.data()) {
+            *px = !out_of_view && tap.is_some_and(|t| s[t.nearest as usize]);
+        }
+        out
+    }
+}
+
+/// The bilinear and nearest taps of source position `(us, vs)` (inside the image) in a `w × h`
+/// image; an image one pixel wide or high reads its one column or row.
+fn tap(us: f64, vs: f64, w: usize, h: usize) -> Tap {
+    let x0 = (us.floor().max(0.0) as usize).min(w - 1);
+    let y0 = (vs.floor().max(0.0) as usize).min(h - 1);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let nx = (us.round().max(0.0) as usize).min(w - 1);
+    let ny = (vs.round().max(0.0) as usize).min(h - 1);
+    let index = |x: usize, y: usize| (y * w + x) as u32;
+    Tap {
+        four: [index(x0, y0), index(x1, y0), index(x0, y1), index(x1, y1)],
+        wx: (us - x0 as f64).clamp(0.0, 1.0) as f32,
+        wy: (vs - y0 as f64).clamp(0.0, 1.0) as f32,
+        nearest: index(nx, ny),
+    }
+}
+
+#[cfg(test)]
+#[path = "undistort_tests.rs"]
+mod tests;

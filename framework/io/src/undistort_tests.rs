@@ -1,0 +1,120 @@
+use super::*;
+use capsule_slam_framework::lens::LensModel;
+
+const BARREL: LensModel = LensModel::RadialTangential([-0.3, 0.1, 0.001, -0.002, 0.0, 0.0, 0.0, 0.0]);
+const FISHEYE: LensModel = LensModel::Equidistant([0.05, -0.01, 0.002, -0.0005]);
+
+fn camera(lens: Option<LensModel>, fov_radius_px: Option<f64>) -> PinholeCamera {
+    let mut c = PinholeCamera::new(160, 120, 80.0, 80.0, 79.5, 59.5);
+    c.distortion = lens;
+    c.fov_radius_px = fov_radius_px;
+    c
+}
+
+/// The ray (normalised coordinates) each source pixel sees, through the lens.
+fn ray_of_source_pixel(c: &PinholeCamera, x: usize, y: usize) -> Option<(f64, f64)> {
+    let (xd, yd) = ((x as f64 - c.cx) / c.fx, (y as f64 - c.cy) / c.fy);
+    c.distortion.map_or(Some((xd, yd)), |l| l.undistort(xd, yd))
+}
+
+/// A smooth colour pattern over rays (about 6 px per period at the centre).
+fn pattern(x: f64, y: f64) -> [f64; 3] {
+    [128.0 + 90.0 * (9.0 * x).sin(), 128.0 + 90.0 * (7.0 * y).cos(), 128.0 + 60.0 * (5.0 * (x + y)).sin()]
+}
+
+/// The depth of a slanted plane `0.3 x + 0.2 y + z = 0.05` along a ray.
+fn plane_depth(x: f64, y: f64) -> f64 {
+    0.05 / (0.3 * x + 0.2 * y + 1.0)
+}
+
+fn source_images(c: &PinholeCamera) -> (Rgb8, DepthMap) {
+    let rgb = Rgb8::from_fn(c.width, c.height, |x, y| ray_of_source_pixel(c, x, y).map_or([0; 3], |(rx, ry)| pattern(rx, ry).map(|v| v.round() as u8)));
+    let depth = DepthMap::from_fn(c.width, c.height, |x, y| [ray_of_source_pixel(c, x, y).map_or(0.0, |(rx, ry)| plane_depth(rx, ry) as f32)]);
+    (rgb, depth)
+}
+
+#[test]
+fn without_a_lens_the_images_come_back_unchanged() {
+    let c = camera(None, None);
+    let (rgb, depth) = source_images(&c);
+    let u = Undistortion::new(&c);
+    assert_eq!(u.rgb(&rgb).data(), rgb.data());
+    assert_eq!(u.depth(&depth).data(), depth.data());
+    assert!(!u.out_of_view().data().iter().any(|b| *b));
+}
+
+#[test]
+fn undistorted_pixels_see_their_pinhole_rays() {
+    for lens in [BARREL, FISHEYE] {
+        let c = camera(Some(lens), None);
+        let (rgb, depth) = source_images(&c);
+        let u = Undistortion::new(&c);
+        let (out_rgb, out_depth) = (u.rgb(&rgb), u.depth(&depth));
+        let pin = u.camera();
+        assert!(pin.distortion.is_none());
+        let (mut worst_rgb, mut worst_depth, mut seen) = (0.0f64, 0.0f64, 0);
+        for y in 2..c.height - 2 {
+            for x in 2..c.width - 2 {
+                if u.out_of_view().at(x, y) {
+                    continue;
+                }
+                seen += 1;
+                let (rx, ry) = ((x as f64 - pin.cx) / pin.fx, (y as f64 - pin.cy) / pin.fy);
+                let want = pattern(rx, ry);
+                for (ch, w) in want.iter().enumerate() {
+                    worst_rgb = worst_rgb.max((f64::from(out_rgb.pixel(x, y)[ch]) - w).abs());
+                }
+                let e = (f64::from(out_depth.at(x, y)) - plane_depth(rx, ry)).abs() / plane_depth(rx, ry);
+                worst_depth = worst_depth.max(e);
+            }
+        }
+        // Barrel and fisheye lenses see wider than their pinhole image: every pixel is seen.
+        assert_eq!(seen, (c.width - 4) * (c.height - 4), "{lens:?}");
+        // Bilinear interpolation of a pattern with a 6-px period: 1.0–1.2 grey levels measured.
+        assert!(worst_rgb < 3.0, "{lens:?}: colour off by {worst_rgb}");
+        // 0.5e-4 (barrel) and 1.4e-4 (fisheye, its compressed corners) measured.
+        assert!(worst_depth < 2e-4, "{lens:?}: depth off by a share {worst_depth}");
+    }
+}
+
+#[test]
+fn a_depth_edge_is_not_blended() {
+    let c = camera(Some(BARREL), None);
+    // Near 30 mm left of x = 0.1, far 60 mm right of it.
+    let depth = DepthMap::from_fn(c.width, c.height, |x, y| [ray_of_source_pixel(&c, x, y).map_or(0.0, |(rx, _)| if rx < 0.1 { 0.03 } else { 0.06 })]);
+    let out = Undistortion::new(&c).depth(&depth);
+    assert!(out.data().iter().all(|z| (z - 0.03).abs() < 1e-7 || (z - 0.06).abs() < 1e-7), "a depth between the two surfaces was invented");
+}
+
+#[test]
+fn a_round_field_of_view_becomes_the_inscribed_circle_of_what_is_seen() {
+    // Pincushion: the pinhole image's corners look outside the source image.
+    let pincushion = LensModel::brown_conrady([0.2, 0.0, 0.0, 0.0, 0.0]);
+    let c = camera(Some(pincushion), Some(55.0));
+    let u = Undistortion::new(&c);
+    let r = u.camera().fov_radius_px.expect("a round field of view stays round");
+    // A ray at radius r lands at r (1 + 0.2 (r/f)²) in the source: 55 px there.
+    let f = 80.0;
+    let expected = (0..2000).map(|i| f64::from(i) * 0.05).filter(|r| r * (1.0 + 0.2 * (r / f).powi(2)) <= 55.0).fold(0.0, f64::max);
+    assert!((r - expected).abs() < 1.5, "inscribed radius {r}, expected about {expected}");
+    let mask = u.out_of_view();
+    for y in 0..c.height {
+        for x in 0..c.width {
+            if u.camera().in_fov(x as f64, y as f64) {
+                assert!(!mask.at(x, y), "({x}, {y}) is inside the new field of view but unseen");
+            }
+        }
+    }
+    let m = u.mask(&Mask::filled(c.width, c.height, true));
+    assert!(m.data().iter().zip(mask.data()).all(|(a, out)| !(*a && *out)), "a mask pixel out of view stays set");
+}
+
+#[test]
+fn beyond_a_lens_fold_nothing_is_seen() {
+    // r (1 − 0.9 r²) folds at r = 0.61 (60 px at f = 80): the pinhole corners (r ≈ 1.25) would
+    // land back inside the image.
+    let c = camera(Some(LensModel::brown_conrady([-0.9, 0.0, 0.0, 0.0, 0.0])), None);
+    let u = Undistortion::new(&c);
+    assert!(u.out_of_view().at(0, 0) && u.out_of_view().at(159, 119));
+    assert!(!u.out_of_view().at(80, 60));
+}
