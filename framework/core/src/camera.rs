@@ -168,6 +168,14 @@ impl PinholeCamera {
         Some(Point2::new(self.fx * x + self.cx, self.fy * y + self.cy))
     }
 
+    /// Where a pinhole camera with these intrinsics sees the ray of pixel `(u, v)` of this one
+    /// (the pixel itself without a lens); `None` beyond the lens's fold, where no ray lands.
+    pub fn pinhole_pixel(&self, u: f64, v: f64) -> Option<Point2<f64>> {
+        let Some(d) = &self.distortion else { return Some(Point2::new(u, v)) };
+        let (x, y) = d.undistort((u - self.cx) / self.fx, (v - self.cy) / self.fy)?;
+        Some(Point2::new(self.fx * x + self.cx, self.fy * y + self.cy))
+    }
+
     /// Back-projects pixel `(u, v)` at depth `depth_m` (z, metres): `p = K⁻¹ [u v 1]ᵀ d`
     /// (the paper's back-projection, Sec. 3.3).
     pub fn unproject(&self, u: f64, v: f64, depth_m: f64) -> Point3<f64> {

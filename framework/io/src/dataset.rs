@@ -113,7 +113,14 @@ impl Dataset {
             ));
         }
         let cam = camera.camera();
-        let undistortion = cam.distortion.is_some().then(|| Undistortion::new(&cam));
+        let undistortion = match cam.distortion {
+            Some(_) => {
+                // The map is as large as the camera says: check a frame has that size first.
+                images::check_dimensions(&entries[0].rgb, (cam.width, cam.height))?;
+                Some(Undistortion::new(&cam))
+            }
+            None => None,
+        };
         let out_of_view = match &undistortion {
             Some(u) => u.out_of_view().data().iter().any(|b| *b).then(|| u.out_of_view().clone()),
             None => cam.fov_radius_px.map(|_| {

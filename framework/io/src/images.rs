@@ -23,6 +23,15 @@ fn check_size(path: &Path, found: (u32, u32), expected: Option<(usize, usize)>) 
     }
 }
 
+/// Checks an image's size from its header alone (without decoding it).
+pub fn check_dimensions(path: &Path, expected: (usize, usize)) -> Result<(), LoadError> {
+    if !path.exists() {
+        return Err(LoadError::Image { path: path.to_owned(), message: "file not found".into() });
+    }
+    let found = image::image_dimensions(path).map_err(|e| LoadError::Image { path: path.to_owned(), message: format!("cannot read the image header: {e}") })?;
+    check_size(path, found, Some(expected))
+}
+
 /// Reads a colour image (grey images are expanded to RGB), checking its size if given.
 pub fn read_rgb(path: &Path, expected: Option<(usize, usize)>) -> Result<Rgb8, LoadError> {
     let img = open(path)?;

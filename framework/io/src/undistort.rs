@@ -2,7 +2,7 @@
 //! item 6). The stages see a pinhole camera with the file's intrinsics and no lens: each of its
 //! pixels `(u, v)` looks along the ray `K⁻¹ [u v 1]ᵀ`, which the lens puts at the source pixel
 //! `K · distort(K⁻¹ [u v 1]ᵀ)` (OpenCV's `initUndistortRectifyMap` with the same camera matrix).
-//! Colour is sampled bilinearly; depth bilinearly where the four source pixels agree (within
+//! Colour is sampled bicubically; depth bilinearly where the four source pixels agree (within
 //! [`DEPTH_BLEND_SHARE`] of the depth) and from the nearest pixel across a depth edge, so no
 //! depth between two surfaces is invented; masks from the nearest pixel. A pixel whose ray
 //! lands outside the source image or its round field of view, or beyond the lens's fold (where
@@ -26,6 +26,11 @@ struct Tap {
     wy: f32,
     /// Index of the nearest source pixel.
     nearest: u32,
+    /// The bicubic 4×4: source columns and row starts (clamped at the border) and their weights.
+    cols: [u32; 4],
+    rows: [u32; 4],
+    kx: [f32; 4],
+    ky: [f32; 4],
 }
 
 /// The precomputed undistortion of one camera.
@@ -92,18 +97,27 @@ impl Undistortion {
         size == (self.width, self.height)
     }
 
-    /// The colour image undistorted (bilinear; black out of view). The image must have the
-    /// source size ([`Undistortion::fits`]).
+    /// The colour image undistorted (bicubic, Keys' kernel with a = −0.5: unlike a bilinear
+    /// sample, it does not blur a pixel more the nearer its source lies to a half-pixel, a blur
+    /// that would change over the image and move with the texture; black out of view). The
+    /// image must have the source size ([`Undistortion::fits`]).
     pub fn rgb(&self, src: &Rgb8) -> Rgb8 {
         let s = src.data();
         let mut out = Rgb8::new(self.width, self.height);
         for (px, tap) in out.data_mut().chunks_exact_mut(3).zip(&self.taps) {
             let Some(t) = tap else { continue };
-            let [a, b, c, d] = t.four.map(|i| i as usize);
+            let mut acc = [0.0f32; 3];
+            for (row, ky) in t.rows.iter().zip(t.ky) {
+                for (col, kx) in t.cols.iter().zip(t.kx) {
+                    let k = 3 * (row + col) as usize;
+                    let w = kx * ky;
+                    for ch in 0..3 {
+                        acc[ch] += w * f32::from(s[k + ch]);
+                    }
+                }
+            }
             for ch in 0..3 {
-                let top = f32::from(s[3 * a + ch]) * (1.0 - t.wx) + f32::from(s[3 * b + ch]) * t.wx;
-                let bottom = f32::from(s[3 * c + ch]) * (1.0 - t.wx) + f32::from(s[3 * d + ch]) * t.wx;
-                px[ch] = (top * (1.0 - t.wy) + bottom * t.wy).round().clamp(0.0, 255.0) as u8;
+                px[ch] = acc[ch].round().clamp(0.0, 255.0) as u8;
             }
         }
         out
@@ -150,12 +164,34 @@ fn tap(us: f64, vs: f64, w: usize, h: usize) -> Tap {
     let nx = (us.round().max(0.0) as usize).min(w - 1);
     let ny = (vs.round().max(0.0) as usize).min(h - 1);
     let index = |x: usize, y: usize| (y * w + x) as u32;
+    let clamp = |v: usize, d: isize, n: usize| (v as isize + d).clamp(0, n as isize - 1) as u32;
+    let (fx, fy) = ((us - x0 as f64).clamp(0.0, 1.0), (vs - y0 as f64).clamp(0.0, 1.0));
     Tap {
         four: [index(x0, y0), index(x1, y0), index(x0, y1), index(x1, y1)],
-        wx: (us - x0 as f64).clamp(0.0, 1.0) as f32,
-        wy: (vs - y0 as f64).clamp(0.0, 1.0) as f32,
+        wx: fx as f32,
+        wy: fy as f32,
         nearest: index(nx, ny),
+        cols: [-1, 0, 1, 2].map(|d| clamp(x0, d, w)),
+        rows: [-1, 0, 1, 2].map(|d| clamp(y0, d, h) * w as u32),
+        kx: keys_weights(fx),
+        ky: keys_weights(fy),
     }
+}
+
+/// Keys' cubic convolution weights (a = −0.5) of the samples at −1, 0, 1, 2 for a position
+/// `f ∈ [0, 1]` between samples 0 and 1; they sum to 1.
+fn keys_weights(f: f64) -> [f32; 4] {
+    let k = |t: f64| {
+        let t = t.abs();
+        if t <= 1.0 {
+            (1.5 * t - 2.5) * t * t + 1.0
+        } else if t < 2.0 {
+            ((-0.5 * t + 2.5) * t - 4.0) * t + 2.0
+        } else {
+            0.0
+        }
+    };
+    [k(1.0 + f), k(f), k(1.0 - f), k(2.0 - f)].map(|v| v as f32)
 }
 
 #[cfg(test)]

@@ -89,11 +89,9 @@ impl Phantom {
         if !cam.in_fov(u, v) {
             return None;
         }
-        let (mut xn, mut yn) = ((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy);
-        if let Some(d) = &cam.distortion {
-            // A pixel no ray reaches (beyond the lens's fold) stays empty.
-            (xn, yn) = d.undistort(xn, yn)?;
-        }
+        // A pixel no ray reaches (beyond the lens's fold) stays empty.
+        let pin = cam.pinhole_pixel(u, v)?;
+        let (xn, yn) = ((pin.x - cam.cx) / cam.fx, (pin.y - cam.cy) / cam.fy);
         let d_cam = Vector3::new(xn, yn, 1.0).normalize();
         let d_w = pose.rotation * d_cam;
         let o = Point3::from(pose.translation.vector);
@@ -104,7 +102,9 @@ impl Phantom {
         let n_cam = pose.rotation.inverse() * n_w;
         let tc = self.shape.coords(&p_w);
         let albedo = texture::albedo(&self.shape.rest_point(tc.phi, tc.theta), self.spec.seed, self.spec.texture);
-        let vig = self.light.vignetting_at(cam, u, v);
+        // The lens and light fall-off V is a function of the ray (its pinhole pixel): what the
+        // stages, which see undistorted frames, divide out with `light.toml`.
+        let vig = self.light.vignetting_at(cam, pin.x, pin.y);
         let cos_inc = self.light.cos_incidence(&p_cam, &n_cam);
         let fall = self.light.falloff(&p_cam);
         let mut diffuse = [0.0; 3];
@@ -203,10 +203,10 @@ impl Phantom {
         let noise = self.spec.noise;
         Rgb8::from_fn(cam.width, cam.height, |x, y| {
             let (u, v) = (x as f64, y as f64);
-            if !cam.in_fov(u, v) {
+            let Some(pin) = cam.pinhole_pixel(u, v).filter(|_| cam.in_fov(u, v)) else {
                 return [0; 3];
-            }
-            let lin = capsule_slam_framework::light::vignetting::flat_field_linear(&light, cam, u, v, distance_m, 0.8);
+            };
+            let lin = capsule_slam_framework::light::vignetting::flat_field_linear(&light, cam, pin.x, pin.y, distance_m, 0.8);
             std::array::from_fn(|_| {
                 let g: f64 = StandardNormal.sample(&mut rng);
                 let n = g * (noise * (READ_NOISE * READ_NOISE + SHOT_NOISE * lin)).sqrt();
@@ -217,7 +217,8 @@ impl Phantom {
 
     /// The lens vignetting V(u) of every pixel.
     pub fn vignetting_field(&self) -> GrayF32 {
-        GrayF32::from_fn(self.camera.width, self.camera.height, |x, y| [self.light.vignetting_at(&self.camera, x as f64, y as f64) as f32])
+        let cam = &self.camera;
+        GrayF32::from_fn(cam.width, cam.height, |x, y| [cam.pinhole_pixel(x as f64, y as f64).map_or(0.0, |p| self.light.vignetting_at(cam, p.x, p.y) as f32)])
     }
 
     /// The wall at time `t_s` sampled about every `spacing_m` (world frame, inward normals,
