@@ -35,7 +35,8 @@ fn io(c: &mut Criterion) {
         cam.fov_radius_px = Some(150.4);
         c.bench_function(&format!("undistort-map-320/{name}"), |b| b.iter(|| Undistortion::new(&cam)));
         let u = Undistortion::new(&cam);
-        c.bench_function(&format!("undistort-frame-320/{name}"), |b| b.iter(|| (u.rgb(&rgb), u.depth(&depth))));
+        c.bench_function(&format!("undistort-rgb-320/{name}"), |b| b.iter(|| u.rgb(&rgb)));
+        c.bench_function(&format!("undistort-depth-320/{name}"), |b| b.iter(|| u.depth(&depth)));
     }
     let surfels = SurfelSet::new(
         (0..100_000u32)

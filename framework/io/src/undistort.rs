@@ -10,6 +10,7 @@
 
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::{DepthMap, Mask, Rgb8};
+use rayon::prelude::*;
 
 /// Largest spread of the four depths a bilinear depth sample blends, as a share of the nearest:
 /// 2.5 mm at 50 mm, a fold of the wall; a wall slanted at 80° to the ray spreads less over a
@@ -26,9 +27,10 @@ struct Tap {
     wy: f32,
     /// Index of the nearest source pixel.
     nearest: u32,
-    /// The bicubic 4×4: source columns and row starts (clamped at the border) and their weights.
-    cols: [u32; 4],
-    rows: [u32; 4],
+    /// Index of the bicubic 4×4's first source pixel, `(x0 − 1, y0 − 1)`; `None` where the 4×4
+    /// crosses the image border (its rows and columns are then clamped).
+    cubic_origin: Option<u32>,
+    /// Keys' weights of the 4×4's columns and rows.
     kx: [f32; 4],
     ky: [f32; 4],
 }
@@ -102,24 +104,41 @@ impl Undistortion {
     /// that would change over the image and move with the texture; black out of view). The
     /// image must have the source size ([`Undistortion::fits`]).
     pub fn rgb(&self, src: &Rgb8) -> Rgb8 {
-        let s = src.data();
-        let mut out = Rgb8::new(self.width, self.height);
-        for (px, tap) in out.data_mut().chunks_exact_mut(3).zip(&self.taps) {
-            let Some(t) = tap else { continue };
-            let mut acc = [0.0f32; 3];
-            for (row, ky) in t.rows.iter().zip(t.ky) {
-                for (col, kx) in t.cols.iter().zip(t.kx) {
-                    let k = 3 * (row + col) as usize;
-                    let w = kx * ky;
-                    for ch in 0..3 {
-                        acc[ch] += w * f32::from(s[k + ch]);
+        let (s, w, h) = (src.data(), self.width, self.height);
+        let mut out = Rgb8::new(w, h);
+        out.data_mut().par_chunks_mut(3 * w).zip(self.taps.par_chunks(w)).for_each(|(row_out, row_taps)| {
+            for (px, tap) in row_out.chunks_exact_mut(3).zip(row_taps) {
+                let Some(t) = tap else { continue };
+                let mut acc = [0.0f32; 3];
+                let mut add = |k: usize, weight: f32| {
+                    for (a, v) in acc.iter_mut().zip(&s[3 * k..3 * k + 3]) {
+                        *a += weight * f32::from(*v);
+                    }
+                };
+                match t.cubic_origin {
+                    Some(origin) => {
+                        for (r, ky) in t.ky.iter().enumerate() {
+                            let first = origin as usize + r * w;
+                            for (c, kx) in t.kx.iter().enumerate() {
+                                add(first + c, kx * ky);
+                            }
+                        }
+                    }
+                    None => {
+                        let (x0, y0) = (t.four[0] as usize % w, t.four[0] as usize / w);
+                        let clamp = |v: usize, d: usize, n: usize| (v + d).saturating_sub(1).min(n - 1);
+                        for (r, ky) in t.ky.iter().enumerate() {
+                            for (c, kx) in t.kx.iter().enumerate() {
+                                add(clamp(y0, r, h) * w + clamp(x0, c, w), kx * ky);
+                            }
+                        }
                     }
                 }
+                for (p, a) in px.iter_mut().zip(acc) {
+                    *p = a.round().clamp(0.0, 255.0) as u8;
+                }
             }
-            for ch in 0..3 {
-                px[ch] = acc[ch].round().clamp(0.0, 255.0) as u8;
-            }
-        }
+        });
         out
     }
 
@@ -164,15 +183,13 @@ fn tap(us: f64, vs: f64, w: usize, h: usize) -> Tap {
     let nx = (us.round().max(0.0) as usize).min(w - 1);
     let ny = (vs.round().max(0.0) as usize).min(h - 1);
     let index = |x: usize, y: usize| (y * w + x) as u32;
-    let clamp = |v: usize, d: isize, n: usize| (v as isize + d).clamp(0, n as isize - 1) as u32;
     let (fx, fy) = ((us - x0 as f64).clamp(0.0, 1.0), (vs - y0 as f64).clamp(0.0, 1.0));
     Tap {
         four: [index(x0, y0), index(x1, y0), index(x0, y1), index(x1, y1)],
         wx: fx as f32,
         wy: fy as f32,
         nearest: index(nx, ny),
-        cols: [-1, 0, 1, 2].map(|d| clamp(x0, d, w)),
-        rows: [-1, 0, 1, 2].map(|d| clamp(y0, d, h) * w as u32),
+        cubic_origin: (x0 >= 1 && y0 >= 1 && x0 + 2 < w && y0 + 2 < h).then(|| index(x0 - 1, y0 - 1)),
         kx: keys_weights(fx),
         ky: keys_weights(fy),
     }
