@@ -1,6 +1,7 @@
 //! `capsule-slam`: the command line of the capsule-slam framework.
 
 mod cmd_bench;
+mod cmd_calibrate_camera;
 mod cmd_calibrate_light;
 mod cmd_calibrate_vignetting;
 mod cmd_config;
@@ -42,6 +43,8 @@ enum Command {
     Config(cmd_config::ConfigArgs),
     /// Time the default pipeline per stage on the phantom at several image sizes.
     Bench(cmd_bench::BenchArgs),
+    /// Fit camera.toml (intrinsics and lens) to checkerboard images.
+    CalibrateCamera(cmd_calibrate_camera::CalibrateCameraArgs),
     /// Fit light.toml to frames of a target of known albedo and geometry (depth).
     CalibrateLight(cmd_calibrate_light::CalibrateLightArgs),
     /// Fit vignetting.toml (lens and LED fall-off) to flat-field frames.
@@ -73,6 +76,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(a) => cmd_eval::run(&a),
         Command::Bench(a) => cmd_bench::run_bench(&a, &gpu),
         Command::DepthEval(a) => cmd_depth_eval::run(&a, &gpu),
+        Command::CalibrateCamera(a) => cmd_calibrate_camera::run(&a),
         Command::CalibrateLight(a) => cmd_calibrate_light::run(&a),
         Command::PreprocessEval(a) => cmd_preprocess_eval::run(&a, &gpu),
         Command::Preprocess(a) => cmd_preprocess::run(&a, &gpu),

@@ -330,3 +330,18 @@ fn a_missing_plugin_library_names_the_path_and_the_fix() {
     assert!(!ok);
     assert!(err.contains("pipeline.depth") && err.contains("example-inverse-square") && err.contains("sensor"), "{err}");
 }
+
+#[test]
+fn calibrate_camera_names_a_bad_board_and_a_folder_without_boards() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ok, _, err) = output(&["calibrate-camera", "--images", tmp.path().to_str().unwrap(), "--board", "7", "--square-mm", "2"]);
+    assert!(!ok && err.contains("--board 7") && err.contains("COLSxROWS"), "{err}");
+    for k in 0..3 {
+        let img = capsule_slam_framework::Rgb8::from_fn(64, 48, |x, y| [(x * 3) as u8, (y * 5) as u8, 90]);
+        capsule_slam_io::images::write_rgb(&tmp.path().join(format!("{k}.png")), &img).unwrap();
+    }
+    let (ok, _, err) = output(&["calibrate-camera", "--images", tmp.path().to_str().unwrap(), "--board", "7x6", "--square-mm", "2"]);
+    assert!(!ok, "a folder without a board gave a camera: {err}");
+    assert!(err.contains("0.png: no checkerboard found") && err.contains("0 usable board views") && err.contains(tmp.path().to_str().unwrap()), "{err}");
+    assert!(!tmp.path().join("camera.toml").exists());
+}

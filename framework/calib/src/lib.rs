@@ -1,7 +1,11 @@
-//! Calibration fits of capsule-slam, used by the `calibrate-light` and `calibrate-vignetting`
-//! commands: the near-light model from frames of a matte target ([`light_fit`], Levenberg-
-//! Marquardt) and the lens-and-light fall-off from flat-field frames ([`flat_field`]).
+//! Calibration fits of capsule-slam, used by the `calibrate-camera`, `calibrate-light` and
+//! `calibrate-vignetting` commands: the camera and its lens from checkerboard views
+//! ([`board`] finds the corners, [`camera_fit`] fits Zhang's model and refines it by
+//! Levenberg-Marquardt), the near-light model from frames of a matte target ([`light_fit`],
+//! Levenberg-Marquardt) and the lens-and-light fall-off from flat-field frames ([`flat_field`]).
 
+pub mod board;
+pub mod camera_fit;
 pub mod flat_field;
 pub mod light_fit;
 

@@ -40,6 +40,24 @@ pub struct Dataset {
 
 const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
 
+/// The undistortion of a lens camera (after checking that `first_rgb` has the camera's size: the
+/// map is as large as the camera says) and the out-of-view mask the stages get, if any.
+fn view_maps(camera: &CameraFile, first_rgb: &Path) -> Result<(Option<Undistortion>, Option<Mask>), LoadError> {
+    let cam = camera.camera();
+    if cam.distortion.is_some() {
+        images::check_dimensions(first_rgb, (cam.width, cam.height))?;
+        let u = Undistortion::new(&cam);
+        let out_of_view = u.out_of_view().data().iter().any(|b| *b).then(|| u.out_of_view().clone());
+        return Ok((Some(u), out_of_view));
+    }
+    let out_of_view = cam.fov_radius_px.map(|_| {
+        let mut m = cam.fov_mask();
+        m.data_mut().iter_mut().for_each(|v| *v = !*v);
+        m
+    });
+    Ok((None, out_of_view))
+}
+
 impl Dataset {
     /// Opens a folder. The camera comes from `camera_override` or `<dir>/camera.toml`.
     /// RGB frames without a depth image within the tolerance are dropped (as TUM's
@@ -112,23 +130,7 @@ impl Dataset {
                 "no frames: expected rgb.txt (TUM layout) or image files (png, jpg, bmp)",
             ));
         }
-        let cam = camera.camera();
-        let undistortion = match cam.distortion {
-            Some(_) => {
-                // The map is as large as the camera says: check a frame has that size first.
-                images::check_dimensions(&entries[0].rgb, (cam.width, cam.height))?;
-                Some(Undistortion::new(&cam))
-            }
-            None => None,
-        };
-        let out_of_view = match &undistortion {
-            Some(u) => u.out_of_view().data().iter().any(|b| *b).then(|| u.out_of_view().clone()),
-            None => cam.fov_radius_px.map(|_| {
-                let mut m = cam.fov_mask();
-                m.data_mut().iter_mut().for_each(|v| *v = !*v);
-                m
-            }),
-        };
+        let (undistortion, out_of_view) = view_maps(&camera, &entries[0].rgb)?;
         Ok(Self { dir: dir.to_owned(), camera, entries, ground_truth, has_depth, dropped_without_depth: dropped, out_of_view, undistortion })
     }
 
