@@ -18,9 +18,13 @@ pub struct SynthArgs {
     /// and fast drift.
     #[arg(long, default_value_t = 2)]
     pub preset: u8,
-    /// Number of frames.
+    /// Frames of one walk along the preset's path.
     #[arg(long, default_value_t = 300)]
     pub frames: usize,
+    /// Walk the path this many times, forth and back (a capsule revisits): `frames × repeat`
+    /// frames in all.
+    #[arg(long, default_value_t = 1)]
+    pub repeat: usize,
     /// Image size: naneye (250×250), 320, voyager (720×480), potensic (1280×720).
     #[arg(long, default_value = "320")]
     pub size: String,
@@ -84,6 +88,7 @@ impl SynthArgs {
     pub fn spec(&self) -> anyhow::Result<PhantomSpec> {
         let mut s = PhantomSpec::preset(self.preset);
         s.frames = self.frames;
+        s.repeat = self.repeat;
         s.size = SizePreset::parse(&self.size).ok_or_else(|| anyhow!("--size {}: use naneye, 320, voyager or potensic", self.size))?;
         s.seed = self.seed;
         s.deform_mm = self.deform_mm;
@@ -125,7 +130,7 @@ fn parse_lens(text: &str) -> anyhow::Result<LensModel> {
 /// Renders the sequence; returns the phantom and the wall-clock ms per frame.
 pub fn synthesize(spec: PhantomSpec, out: &std::path::Path, quiet: bool) -> anyhow::Result<(Phantom, f64)> {
     let phantom = Phantom::new(spec).map_err(|e| anyhow!("invalid phantom settings: {e}"))?;
-    let n = phantom.spec.frames;
+    let n = phantom.spec.frame_count();
     let bar = if quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };
     let done = AtomicUsize::new(0);
     let start = Instant::now();
@@ -142,7 +147,7 @@ pub fn synthesize(spec: PhantomSpec, out: &std::path::Path, quiet: bool) -> anyh
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let spec = args.spec()?;
     let (phantom, ms) = synthesize(spec, &args.out, args.quiet)?;
-    let n = phantom.spec.frames;
+    let n = phantom.spec.frame_count();
     if args.contact_sheet {
         let p = args.out.join("contact_sheet.png");
         contact_sheet(&args.out, n, 30, &p).with_context(|| format!("writing {}", p.display()))?;

@@ -69,8 +69,12 @@ impl SizePreset {
 pub struct PhantomSpec {
     /// Trajectory preset, 1–7 (the paper's Table 3).
     pub preset: u8,
-    /// Number of frames.
+    /// Frames of one walk along the path.
     pub frames: usize,
+    /// Walks along the path: forth, back, forth, ... (a capsule revisits); the sequence has
+    /// `frames × repeat` frames and the wall moves on throughout.
+    #[serde(default = "one_walk", skip_serializing_if = "is_one_walk")]
+    pub repeat: usize,
     /// Image size.
     pub size: SizePreset,
     /// Seed of texture and noise.
@@ -101,12 +105,37 @@ pub struct PhantomSpec {
     pub depth_noise: depth_noise::DepthNoise,
 }
 
+fn one_walk() -> usize {
+    1
+}
+
+fn is_one_walk(r: &usize) -> bool {
+    *r == 1
+}
+
 impl PhantomSpec {
+    /// Frames of the sequence: `frames × repeat`.
+    pub fn frame_count(&self) -> usize {
+        self.frames * self.repeat.max(1)
+    }
+
+    /// Where along the path (0 start, 1 end) the capsule is at frame `f` (fractional for motion
+    /// blur): one walk takes `frames` frames, and each further walk goes back the way the last
+    /// came (a triangle wave of period `2 (frames − 1)`), so the capsule never jumps.
+    pub fn path_tau(&self, f: f64) -> f64 {
+        if self.frames <= 1 {
+            return 0.0;
+        }
+        let u = (f / (self.frames - 1) as f64).rem_euclid(2.0);
+        if u <= 1.0 { u } else { 2.0 - u }
+    }
+
     /// The defaults of a trajectory preset: heavy noise on 6, heavy reflections on 7.
     pub fn preset(preset: u8) -> Self {
         Self {
             preset,
             frames: 300,
+            repeat: 1,
             size: SizePreset::default(),
             seed: 1,
             deform_mm: 0.0,
@@ -130,6 +159,9 @@ impl PhantomSpec {
         }
         if self.frames == 0 {
             out.push(("frames", "must be at least 1".into()));
+        }
+        if !(1..=1000).contains(&self.repeat) {
+            out.push(("repeat", format!("{} walks: use 1 to 1000", self.repeat)));
         }
         if !(self.deform_mm.is_finite() && (0.0..=8.0).contains(&self.deform_mm)) {
             out.push(("deform_mm", format!("{} must be in [0, 8] mm", self.deform_mm)));
@@ -203,7 +235,7 @@ impl Phantom {
             spot_exponent: 1.0,
             vignetting: vec![-0.3, -0.25],
         };
-        let poses = (0..spec.frames).map(|i| trajectory::pose(&shape, &trajectory::waypoint(spec.preset, tau(i, spec.frames)))).collect();
+        let poses = (0..spec.frame_count()).map(|i| trajectory::pose(&shape, &trajectory::waypoint(spec.preset, spec.path_tau(i as f64)))).collect();
         Ok(Self { spec, shape, camera, light, poses })
     }
 
@@ -246,9 +278,4 @@ impl Phantom {
     pub fn path_length_m(&self) -> f64 {
         trajectory::path_length_m(&self.poses)
     }
-}
-
-/// Normalised time of frame `i` of `n`.
-pub fn tau(i: usize, n: usize) -> f64 {
-    if n <= 1 { 0.0 } else { i as f64 / (n - 1) as f64 }
 }

@@ -6,7 +6,7 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
-use super::{Phantom, SHININESS, SPECULAR_ALBEDO, tau, texture, trajectory};
+use super::{Phantom, SHININESS, SPECULAR_ALBEDO, texture, trajectory};
 use capsule_slam_framework::geometry::Iso3;
 use capsule_slam_framework::image::{DepthMap, GrayF32, Mask, Rgb8};
 use capsule_slam_framework::map::{Surfel, SurfelSet};
@@ -132,8 +132,7 @@ impl Phantom {
             .map(|k| {
                 let dt = 0.5 * k as f64 / n_blur as f64;
                 let ti = (i as f64 - dt).max(0.0);
-                let tau_k = if self.spec.frames <= 1 { 0.0 } else { ti / (self.spec.frames - 1) as f64 };
-                (trajectory::pose(&self.shape, &trajectory::waypoint(self.spec.preset, tau_k)), ti / self.spec.frame_rate_hz)
+                (trajectory::pose(&self.shape, &trajectory::waypoint(self.spec.preset, self.spec.path_tau(ti))), ti / self.spec.frame_rate_hz)
             })
             .collect();
         let seed = self.spec.seed;
@@ -254,9 +253,9 @@ impl Phantom {
         SurfelSet { surfels }
     }
 
-    /// Normalised time of frame `i`.
+    /// Where along the path (0 start, 1 end) frame `i` is.
     pub fn tau(&self, i: usize) -> f64 {
-        tau(i, self.spec.frames)
+        self.spec.path_tau(i as f64)
     }
 }
 
@@ -274,6 +273,26 @@ mod tests {
         spec.frames = 10;
         f(&mut spec);
         Phantom::new(spec).unwrap()
+    }
+
+    #[test]
+    fn a_repeated_walk_goes_back_the_way_it_came_and_the_wall_moves_on() {
+        let once = phantom(|s| s.deform_mm = 2.0);
+        let thrice = phantom(|s| {
+            s.deform_mm = 2.0;
+            s.repeat = 3;
+        });
+        assert_eq!(thrice.poses().len(), 30);
+        assert_eq!(&thrice.poses()[..10], once.poses(), "the first walk is the single walk");
+        let same = |a: Iso3, b: Iso3| (a.translation.vector - b.translation.vector).norm() < 1e-12 && a.rotation.angle_to(&b.rotation) < 1e-9;
+        for k in 0..10 {
+            // Frame 9 is the far end; the second walk retraces the first, the third the second.
+            assert!(same(thrice.pose(9 + k), once.pose(9 - k)), "back: frame {}", 9 + k);
+            assert!(same(thrice.pose(18 + k.min(9)), once.pose(k.min(9))), "forth again: frame {}", 18 + k.min(9));
+        }
+        // Same place, later time: the wall is elsewhere.
+        assert!(thrice.time_s(18) > once.time_s(0));
+        assert_ne!(thrice.render(18).depth_m.data(), once.render(0).depth_m.data());
     }
 
     #[test]

@@ -44,7 +44,7 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
     if spec_file.exists() {
         std::fs::remove_file(&spec_file).map_err(|e| LoadError::io(&spec_file, e))?;
     }
-    let n = phantom.spec.frames;
+    let n = phantom.spec.frame_count();
     let mut rest = phantom.clone();
     rest.shape.wave_m = 0.0;
     let mut surface = rest.surface(0.0, SURFACE_SPACING_M);
