@@ -4,7 +4,6 @@
 use std::path::PathBuf;
 
 use anyhow::{Context as _, anyhow};
-use capsule_slam_framework::config::Config;
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_io::Dataset;
@@ -60,7 +59,7 @@ pub fn run_bench(args: &BenchArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow:
             eprintln!("generating {} into {}", name, dir.display());
             crate::cmd_synth::synthesize(spec, &dir, true)?;
         }
-        let config = Config::load(None, &args.set)?;
+        let config = crate::load_config(None, &args.set, &registry)?;
         let dataset = Dataset::open(&dir, &config.input, None).with_context(|| format!("opening {}", dir.display()))?;
         let mut pipeline = Pipeline::build(
             &config,

@@ -7,7 +7,6 @@ use std::time::Instant;
 
 use anyhow::{Context as _, anyhow, bail};
 use capsule_slam_eval::depth::{DepthError, depth_error};
-use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
 use capsule_slam_framework::registry::{BuildEnv, Stage};
@@ -36,7 +35,7 @@ fn mean(v: &[DepthError], f: impl Fn(&DepthError) -> f64) -> f64 {
 
 pub fn run(args: &DepthEvalArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
     let registry = crate::registry()?;
-    let config = Config::load(args.config.as_deref(), &args.set)?;
+    let config = crate::load_config(args.config.as_deref(), &args.set, &registry)?;
     let dataset = Dataset::open(&args.input, &config.input, config.camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
     if !dataset.has_depth() {
         bail!("{} has no depth.txt: depth-eval needs ground-truth depth", args.input.display());

@@ -6,7 +6,6 @@ use std::path::PathBuf;
 
 use anyhow::Context as _;
 use capsule_slam_framework::Rgb8;
-use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
 use capsule_slam_framework::files::read_camera_file;
@@ -39,7 +38,7 @@ pub fn run(args: &PreprocessArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::
     let registry = crate::registry()?;
     let mut set = vec!["pipeline.preprocess=[\"reflection\", \"vignetting\"]".to_owned()];
     set.extend(args.set.iter().cloned());
-    let config = Config::load(args.config.as_deref(), &set)?;
+    let config = crate::load_config(args.config.as_deref(), &set, &registry)?;
     let camera = match &args.camera {
         Some(p) => Some(read_camera_file(p)?),
         None => config.camera.clone(),

@@ -7,7 +7,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context as _, bail};
-use capsule_slam_framework::config::Config;
 use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
 use capsule_slam_framework::frame::MASK_SPECULAR;
@@ -65,7 +64,7 @@ pub fn run(args: &PreprocessEvalArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyh
     let registry = crate::registry()?;
     let mut set = vec!["pipeline.preprocess=[\"reflection\", \"vignetting\"]".to_owned()];
     set.extend(args.set.iter().cloned());
-    let config = Config::load(args.config.as_deref(), &set)?;
+    let config = crate::load_config(args.config.as_deref(), &set, &registry)?;
     let dataset = Dataset::open(&args.input, &config.input, config.camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
     let light_path = args.input.join("light.toml");
     let light = capsule_slam_framework::files::read_light_file(&light_path)

@@ -92,6 +92,17 @@ fn main() -> std::process::ExitCode {
 }
 
 /// The registry of every linked plugin and of the `--plugin-lib` libraries.
+/// Reads the config; when other problems stop it short of the registry's validation, the
+/// plugin names of `[pipeline]` are checked too, so an unknown key does not hide an unknown
+/// plugin beside it (issue 18, item 8).
+fn load_config(
+    path: Option<&std::path::Path>,
+    set: &[String],
+    registry: &capsule_slam_framework::Registry,
+) -> Result<capsule_slam_framework::config::Config, capsule_slam_framework::ConfigError> {
+    capsule_slam_framework::config::Config::load_checked(path, set, |c| capsule_slam_framework::config::validate::plugin_name_problems(c, registry))
+}
+
 fn registry() -> anyhow::Result<capsule_slam_framework::Registry> {
     use anyhow::Context as _;
     let mut registry = capsule_slam_framework::Registry::from_inventory()?;

@@ -345,3 +345,12 @@ fn calibrate_camera_names_a_bad_board_and_a_folder_without_boards() {
     assert!(err.contains("0.png: no checkerboard found") && err.contains("0 usable board views") && err.contains(tmp.path().to_str().unwrap()), "{err}");
     assert!(!tmp.path().join("camera.toml").exists());
 }
+
+#[test]
+fn an_unknown_key_does_not_hide_the_unknown_plugin_beside_it() {
+    let (ok, _, err) = output(&["run", "--set", "pipeline.depthh=sensor", "--set", "pipeline.tracker=nosuch", "--out", "/nonexistent/never-written"]);
+    assert!(!ok);
+    assert!(err.contains("2 configuration problems"), "{err}");
+    assert!(err.contains("unknown field `depthh`") && err.contains("unknown tracker `nosuch`"), "{err}");
+    assert!(err.contains("with --set pipeline.depthh=sensor --set pipeline.tracker=nosuch"), "the source names the --set: {err}");
+}

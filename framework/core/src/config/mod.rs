@@ -156,7 +156,17 @@ impl Config {
     /// in order and checks the structure. Plugin-level validation needs the registry: see
     /// [`validate::validate`].
     pub fn load(path: Option<&Path>, overrides: &[String]) -> Result<Self, ConfigError> {
-        let source_name = path.map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
+        Self::load_checked(path, overrides, |_| Vec::new())
+    }
+
+    /// [`Config::load`], and when the config has problems but could still be read with its bad
+    /// keys left out, `more` is asked for that partial config's problems too (the registry's
+    /// plugin names, [`validate::plugin_name_problems`]): an unknown key does not hide the
+    /// unknown plugin beside it.
+    pub fn load_checked(path: Option<&Path>, overrides: &[String], more: impl Fn(&Config) -> Vec<ConfigProblem>) -> Result<Self, ConfigError> {
+        let base = path.map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
+        // A problem may come from a --set as well as from the file: name both.
+        let source_name = if overrides.is_empty() { base } else { format!("{base} with --set {}", overrides.join(" --set ")) };
         let fail = |problems| ConfigError { source_name: source_name.clone(), problems };
         let mut table = match path {
             Some(p) => {
@@ -173,18 +183,29 @@ impl Config {
                 problems.push(p);
             }
         }
-        match Self::from_table(table) {
-            Ok(c) if problems.is_empty() => Ok(c),
-            Ok(_) => Err(fail(problems)),
-            Err(mut more) => {
-                problems.append(&mut more);
+        let (config, mut found) = Self::from_table_partial(table);
+        problems.append(&mut found);
+        match config {
+            Some(c) if problems.is_empty() => Ok(c),
+            Some(partial) => {
+                problems.extend(more(&partial));
                 Err(fail(problems))
             }
+            None => Err(fail(problems)),
         }
     }
 
     /// Deserialises a table section by section, so that every section's problem is reported.
-    pub fn from_table(mut table: toml::Table) -> Result<Self, Vec<ConfigProblem>> {
+    pub fn from_table(table: toml::Table) -> Result<Self, Vec<ConfigProblem>> {
+        match Self::from_table_partial(table) {
+            (Some(c), problems) if problems.is_empty() => Ok(c),
+            (_, problems) => Err(problems),
+        }
+    }
+
+    /// [`Config::from_table`]'s problems, and the config as read with every unknown key left
+    /// out (`None` when a section could not be read at all).
+    fn from_table_partial(mut table: toml::Table) -> (Option<Self>, Vec<ConfigProblem>) {
         let mut problems = Vec::new();
         for key in table.keys() {
             if !["pipeline", "input", "output", "camera", "plugins"].contains(&key.as_str()) {
@@ -220,10 +241,8 @@ impl Config {
         let camera = section::<Option<CameraFile>>(&mut table, "camera", &mut problems);
         let plugins = section::<BTreeMap<String, toml::Table>>(&mut table, "plugins", &mut problems);
         match (pipeline, input, output, camera, plugins) {
-            (Some(pipeline), Some(input), Some(output), Some(camera), Some(plugins)) if problems.is_empty() => {
-                Ok(Self { pipeline, input, output, camera, plugins })
-            }
-            _ => Err(problems),
+            (Some(pipeline), Some(input), Some(output), Some(camera), Some(plugins)) => (Some(Self { pipeline, input, output, camera, plugins }), problems),
+            _ => (None, problems),
         }
     }
 

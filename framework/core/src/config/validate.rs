@@ -18,26 +18,23 @@ pub fn validate(config: &Config, registry: &Registry, rig: ViewKind, source_name
 
     for (kind, name) in config.pipeline.selected() {
         let key = kind.config_key();
-        match registry.get(name) {
-            None => problems.push(unknown_plugin(registry, kind, name)),
-            Some(e) if e.kind != kind => {
-                problems.push(ConfigProblem::new(key, format!("`{name}` is a {}, not a {}", e.kind.as_str(), kind.as_str()), choose(registry, kind)))
-            }
-            Some(e) => {
-                let table = config.plugins.get(name).unwrap_or(&empty);
-                let found = e.check(table);
-                if found.is_empty() {
-                    resolved.insert(name.to_owned(), with_defaults(&e.param_docs(), table));
-                }
-                problems.extend(found);
-                if kind == StageKind::DepthEstimator && e.views == ViewKind::Stereo && rig == ViewKind::Mono {
-                    problems.push(ConfigProblem::new(
-                        key,
-                        format!("`{name}` needs a stereo rig, but the input is mono"),
-                        "choose a mono depth estimator, or give the input a stereo rig (baseline_m in camera.toml)",
-                    ));
-                }
-            }
+        if let Some(p) = name_problem(registry, kind, name) {
+            problems.push(p);
+            continue;
+        }
+        let Some(e) = registry.get(name) else { continue };
+        let table = config.plugins.get(name).unwrap_or(&empty);
+        let found = e.check(table);
+        if found.is_empty() {
+            resolved.insert(name.to_owned(), with_defaults(&e.param_docs(), table));
+        }
+        problems.extend(found);
+        if kind == StageKind::DepthEstimator && e.views == ViewKind::Stereo && rig == ViewKind::Mono {
+            problems.push(ConfigProblem::new(
+                key,
+                format!("`{name}` needs a stereo rig, but the input is mono"),
+                "choose a mono depth estimator, or give the input a stereo rig (baseline_m in camera.toml)",
+            ));
         }
     }
 
@@ -85,6 +82,24 @@ pub fn validate(config: &Config, registry: &Registry, rig: ViewKind, source_name
 fn choose(registry: &Registry, kind: StageKind) -> String {
     let names = registry.names(kind);
     if names.is_empty() { format!("no {} plugin is registered in this build", kind.as_str()) } else { format!("use one of: {}", names.join(", ")) }
+}
+
+/// The problems of the plugin names `[pipeline]` selects (unknown, or of another stage) alone:
+/// what [`Config::load_checked`] adds for a config whose other problems stop it short of
+/// [`validate`].
+pub fn plugin_name_problems(config: &Config, registry: &Registry) -> Vec<ConfigProblem> {
+    config.pipeline.selected().into_iter().filter_map(|(kind, name)| name_problem(registry, kind, name)).collect()
+}
+
+/// Why `name` cannot be the plugin of stage `kind`, if it cannot.
+fn name_problem(registry: &Registry, kind: StageKind, name: &str) -> Option<ConfigProblem> {
+    match registry.get(name) {
+        None => Some(unknown_plugin(registry, kind, name)),
+        Some(e) if e.kind != kind => {
+            Some(ConfigProblem::new(kind.config_key(), format!("`{name}` is a {}, not a {}", e.kind.as_str(), kind.as_str()), choose(registry, kind)))
+        }
+        Some(_) => None,
+    }
 }
 
 fn unknown_plugin(registry: &Registry, kind: StageKind, name: &str) -> ConfigProblem {
