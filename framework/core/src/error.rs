@@ -180,6 +180,14 @@ pub enum PipelineError {
     /// Reading input or writing output failed.
     #[error(transparent)]
     Load(#[from] LoadError),
+    /// Reading a frame's input failed.
+    #[error("at frame {frame}: {source}")]
+    LoadAt {
+        /// Frame index.
+        frame: usize,
+        /// What could not be read.
+        source: LoadError,
+    },
     /// Every frame ran, but the run could not do its job (e.g. no frame gave usable depth, so
     /// there is no map): what it wrote is kept, its summary says so.
     #[error("{0}")]

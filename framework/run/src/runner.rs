@@ -52,7 +52,7 @@ pub fn run(
         let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
         let rec = match load(dataset, pipeline, i, &mut load_warnings) {
             Ok(frame) => pipeline.process(frame),
-            Err(e) => Err(PipelineError::Load(e)),
+            Err(e) => Err(PipelineError::LoadAt { frame: i, source: e }),
         };
         match rec {
             Ok(rec) => {
@@ -67,8 +67,8 @@ pub fn run(
                 records.push(rec);
             }
             Err(e) => {
-                // A stage's error names its frame; a load error names the file: add the frame.
-                failed_at = (!matches!(e, PipelineError::Stage { .. })).then_some(i);
+                // A stage's or a frame's load error names its frame; any other: add it.
+                failed_at = (!matches!(e, PipelineError::Stage { .. } | PipelineError::LoadAt { .. })).then_some(i);
                 failure = Some(e);
                 break;
             }
@@ -103,7 +103,11 @@ pub fn run(
         summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
     }
     if let Some(f) = &failure {
-        summary.status = failed_at.map_or_else(|| format!("failed: {f}"), |i| format!("failed at frame {i}: {f}"));
+        summary.status = match (failed_at, f) {
+            (Some(i), _) => format!("failed at frame {i}: {f}"),
+            (None, PipelineError::LoadAt { .. }) => format!("failed {f}"),
+            (None, _) => format!("failed: {f}"),
+        };
     }
     writer.write_summary(&summary)?;
     match failure {
