@@ -51,12 +51,7 @@ pub fn run(args: &CalibrateCameraArgs) -> anyhow::Result<()> {
         m => bail!("--model {m}: use radial-tangential or equidistant"),
     };
     let board = Board { cols, rows, square_m: args.square_mm * 1e-3 };
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&args.images)
-        .with_context(|| format!("reading the image folder {}", args.images.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].contains(&e.to_ascii_lowercase().as_str())))
-        .collect();
-    files.sort();
+    let files = images::list_images(&args.images).with_context(|| format!("reading the image folder {}", args.images.display()))?;
     let Some(first) = files.first() else { bail!("{} holds no PNG, JPEG or BMP image: give the folder of checkerboard images", args.images.display()) };
     let size = images::read_rgb(first, None).with_context(|| format!("checkerboard image {}", first.display()))?.size();
     let mut views = Vec::new();

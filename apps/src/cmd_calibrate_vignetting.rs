@@ -47,12 +47,7 @@ pub fn run(args: &CalibrateVignettingArgs) -> anyhow::Result<()> {
     let lens_cam = read_camera_file(&args.camera)?.camera();
     let undistortion = lens_cam.distortion.is_some().then(|| Undistortion::new(&lens_cam));
     let cam = undistortion.as_ref().map_or(lens_cam.clone(), |u| u.camera().clone());
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&args.images)
-        .with_context(|| format!("reading the flat-field folder {}", args.images.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].contains(&e.to_ascii_lowercase().as_str())))
-        .collect();
-    files.sort();
+    let files = images::list_images(&args.images).with_context(|| format!("reading the flat-field folder {}", args.images.display()))?;
     if files.is_empty() {
         bail!("{} holds no PNG, JPEG or BMP image: give the folder of flat-field frames", args.images.display());
     }

@@ -3,6 +3,8 @@
 //! that nothing panicked, and what the output folder holds afterwards (kept and valid, or
 //! nothing when the run could not start).
 
+#![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
+
 use std::path::Path;
 use std::process::Command;
 
@@ -108,7 +110,7 @@ fn every_bad_input_is_an_error_or_a_warning_that_names_it_and_costs_no_data() {
     let mut failures = Vec::new();
     for (k, case) in CASES.iter().enumerate() {
         let input = root.path().join(format!("case{k}"));
-        copy_dir(&valid, &input);
+        capsule_slam_tests::fixtures::copy_dir(&valid, &input);
         (case.damage)(&input);
         let out = root.path().join(format!("out{k}"));
         let o = Command::new(env!("CARGO_BIN_EXE_capsule-slam"))
@@ -145,13 +147,4 @@ fn every_bad_input_is_an_error_or_a_warning_that_names_it_and_costs_no_data() {
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));
-}
-
-fn copy_dir(src: &Path, dst: &Path) {
-    std::fs::create_dir_all(dst).unwrap();
-    for entry in std::fs::read_dir(src).unwrap() {
-        let p = entry.unwrap().path();
-        let to = dst.join(p.file_name().unwrap());
-        if p.is_dir() { copy_dir(&p, &to) } else { std::fs::copy(&p, &to).map(|_| ()).unwrap() }
-    }
 }

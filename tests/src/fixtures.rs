@@ -86,3 +86,17 @@ pub fn write_dataset(dir: &Path, n: usize) -> Vec<StampedPose> {
     tum::write_trajectory(&dir.join("groundtruth.txt"), &gt).unwrap();
     gt
 }
+
+/// Copies a folder and everything below it (a fixture to damage, leaving the original).
+pub fn copy_dir(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for entry in std::fs::read_dir(src).unwrap() {
+        let p = entry.unwrap().path();
+        let to = dst.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_dir(&p, &to);
+        } else {
+            std::fs::copy(&p, &to).unwrap();
+        }
+    }
+}

@@ -37,15 +37,6 @@ fn run_on(data: &Path, out: &Path, tracker: &str) -> Summary {
     run(&ds, &mut p, &mut w, &RunOptions { write_map: true, ..RunOptions::default() }, |_| {}).unwrap()
 }
 
-fn copy_dir(src: &Path, dst: &Path) {
-    std::fs::create_dir_all(dst).unwrap();
-    for entry in std::fs::read_dir(src).unwrap() {
-        let p = entry.unwrap().path();
-        let to = dst.join(p.file_name().unwrap());
-        if p.is_dir() { copy_dir(&p, &to) } else { std::fs::copy(&p, &to).map(|_| ()).unwrap() }
-    }
-}
-
 fn metric(s: &Summary, k: &str) -> f64 {
     *s.metrics.get(k).unwrap_or_else(|| panic!("no {k} in {:?}", s.metrics.keys().collect::<Vec<_>>()))
 }
@@ -69,7 +60,7 @@ fn a_lens_phantom_is_undistorted_as_it_loads_and_fuses_onto_the_wall() {
 
         // The same frames read as if the lens were a pinhole bend the wall by millimetres.
         let ignored = tmp.path().join(format!("{name}-ignored"));
-        copy_dir(&data, &ignored);
+        capsule_slam_tests::fixtures::copy_dir(&data, &ignored);
         write_camera_file(&ignored.join("camera.toml"), &CameraFile { distortion: None, ..file }).unwrap();
         let bent = metric(&run_on(&ignored, &tmp.path().join(format!("{name}-bent")), "ground-truth"), "live_surface_rmse_m");
         assert!(bent > 10.0 * on_wall.max(1e-4), "{name}: ignoring the lens gives {bent} m, undistorting {on_wall} m");

@@ -38,8 +38,6 @@ pub struct Dataset {
     undistortion: Option<Undistortion>,
 }
 
-const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
-
 /// The undistortion of a lens camera (after checking that `first_rgb` has the camera's size: the
 /// map is as large as the camera says) and the out-of-view mask the stages get, if any.
 fn view_maps(camera: &CameraFile, first_rgb: &Path) -> Result<(Option<Undistortion>, Option<Mask>), LoadError> {
@@ -107,13 +105,7 @@ impl Dataset {
             }
             (entries, depth.is_some(), dropped)
         } else {
-            let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-                .map_err(|e| LoadError::io(dir, e))?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str())))
-                .collect();
-            files.sort();
-            let entries = files
+            let entries = images::list_images(dir)?
                 .into_iter()
                 .enumerate()
                 .map(|(i, rgb)| {

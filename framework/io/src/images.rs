@@ -23,6 +23,20 @@ fn check_size(path: &Path, found: (u32, u32), expected: Option<(usize, usize)>) 
     }
 }
 
+/// File extensions read as images (any case).
+pub const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
+
+/// The image files (PNG, JPEG, BMP) of a folder, sorted by name.
+pub fn list_images(dir: &Path) -> Result<Vec<std::path::PathBuf>, LoadError> {
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| LoadError::io(dir, e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str())))
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
 /// Checks an image's size from its header alone (without decoding it).
 pub fn check_dimensions(path: &Path, expected: (usize, usize)) -> Result<(), LoadError> {
     if !path.exists() {
