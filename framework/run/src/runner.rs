@@ -103,16 +103,21 @@ pub fn run(
         summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
     }
     if let Some(f) = &failure {
-        summary.status = match (failed_at, f) {
-            (Some(i), _) => format!("failed at frame {i}: {f}"),
-            (None, PipelineError::LoadAt { .. }) => format!("failed {f}"),
-            (None, _) => format!("failed: {f}"),
-        };
+        summary.status = failed_status(f, failed_at);
     }
     writer.write_summary(&summary)?;
     match failure {
         Some(e) => Err(e),
         None => Ok(summary),
+    }
+}
+
+/// `summary.json`'s status of a failed run: `failed at frame N: reason` where a frame failed.
+fn failed_status(f: &PipelineError, failed_at: Option<usize>) -> String {
+    match (failed_at, f) {
+        (Some(i), _) => format!("failed at frame {i}: {f}"),
+        (None, PipelineError::LoadAt { .. }) => format!("failed {f}"),
+        (None, _) => format!("failed: {f}"),
     }
 }
 
