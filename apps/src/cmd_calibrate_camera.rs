@@ -52,12 +52,16 @@ pub fn run(args: &CalibrateCameraArgs) -> anyhow::Result<()> {
     };
     let board = Board { cols, rows, square_m: args.square_mm * 1e-3 };
     let files = images::list_images(&args.images).with_context(|| format!("reading the image folder {}", args.images.display()))?;
-    let Some(first) = files.first() else { bail!("{} holds no PNG, JPEG or BMP image: give the folder of checkerboard images", args.images.display()) };
-    let size = images::read_rgb(first, None).with_context(|| format!("checkerboard image {}", first.display()))?.size();
+    if files.is_empty() {
+        bail!("{} holds no PNG, JPEG or BMP image: give the folder of checkerboard images", args.images.display());
+    }
+    // The first image sets the size every other must have.
+    let mut size = None;
     let mut views = Vec::new();
     for f in &files {
         let name = f.file_name().map_or_else(|| f.display().to_string(), |n| n.to_string_lossy().into_owned());
-        let img = images::read_rgb(f, Some(size)).with_context(|| format!("checkerboard image {} (all images must be {}×{})", f.display(), size.0, size.1))?;
+        let img = images::read_rgb(f, size).with_context(|| format!("checkerboard image {} (all images must have the first one's size)", f.display()))?;
+        size = Some(img.size());
         match detect_board(&img, &board, &name) {
             Ok(v) => {
                 println!("{name:<44} {} corners", v.corners.len());
@@ -66,6 +70,7 @@ pub fn run(args: &CalibrateCameraArgs) -> anyhow::Result<()> {
             Err(e) => eprintln!("warning: {name}: {e}; left out"),
         }
     }
+    let size = size.unwrap_or_default();
     let fit = fit_camera(&views, size.0, size.1, lens).map_err(|e| anyhow!("{e} (from {} images in {})", files.len(), args.images.display()))?;
     for (name, why) in &fit.dropped {
         eprintln!("warning: {name}: left out of the fit: {why}");

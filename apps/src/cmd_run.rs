@@ -85,9 +85,7 @@ fn default_phantom(quiet: bool) -> anyhow::Result<PathBuf> {
 pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
     let registry = crate::registry()?;
     let mut config = crate::load_config(args.config.as_deref(), &args.set, &registry)?;
-    let base = args.config.as_ref().map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
-    // A problem may come from a --set as well as from the file: name both.
-    let source = if args.set.is_empty() { base } else { format!("{base} with --set {}", args.set.join(" --set ")) };
+    let source = capsule_slam_framework::config::Config::source_name(args.config.as_deref(), &args.set);
     if let Some(i) = &args.input {
         config.input.path = Some(i.clone());
     }

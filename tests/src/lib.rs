@@ -3,4 +3,5 @@
 //! stages (they live here, never in `plugins/`).
 
 pub mod fixtures;
+pub mod runs;
 pub mod stages;

@@ -9,36 +9,26 @@ use capsule_slam_framework::camera::CameraFile;
 use capsule_slam_framework::config::Config;
 use capsule_slam_framework::files::{read_camera_file, write_camera_file};
 use capsule_slam_framework::lens::LensModel;
-use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_io::Dataset;
 use capsule_slam_phantom::writer::write_sequence;
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
-use capsule_slam_run::{RunOptions, RunWriter, Summary, run};
-use capsule_slam_tests::stages::test_registry;
+use capsule_slam_run::{RunOptions, Summary};
+use capsule_slam_tests::runs::{metric, run_with};
 
 /// A capsule-like barrel lens: the image corner 22 % nearer the centre than a pinhole's.
 const BARREL: LensModel = LensModel::RadialTangential([-0.3, 0.1, 0.001, -0.002, 0.0, 0.0, 0.0, 0.0]);
 const FISHEYE: LensModel = LensModel::Equidistant([0.05, -0.01, 0.002, -0.0005]);
 
+fn run_on(data: &Path, out: &Path, tracker: &str) -> Summary {
+    let tracker_set = format!("pipeline.tracker={tracker}");
+    let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", tracker_set.as_str(), "input.initial_pose=ground-truth"];
+    run_with(data, out, &sets, &RunOptions { write_map: true, ..RunOptions::default() })
+}
+
 /// Preset 2's path in `frames` frames (100: about 2 mm per frame).
 fn phantom(dir: &Path, lens: Option<LensModel>, frames: usize) {
     let spec = PhantomSpec { frames, size: SizePreset::NanEye, noise: 0.0, specular: 0.0, distortion: lens, ..PhantomSpec::preset(2) };
     write_sequence(&Phantom::new(spec).unwrap(), dir, &|_| {}).unwrap();
-}
-
-fn run_on(data: &Path, out: &Path, tracker: &str) -> Summary {
-    let tracker_set = format!("pipeline.tracker={tracker}");
-    let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", tracker_set.as_str(), "input.initial_pose=ground-truth"];
-    let cfg = Config::load(None, &sets.map(String::from)).unwrap();
-    let ds = Dataset::open(data, &cfg.input, None).unwrap();
-    let mut p = Pipeline::build(&cfg, "test", &test_registry(), &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
-    let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
-    run(&ds, &mut p, &mut w, &RunOptions { write_map: true, ..RunOptions::default() }, |_| {}).unwrap()
-}
-
-fn metric(s: &Summary, k: &str) -> f64 {
-    *s.metrics.get(k).unwrap_or_else(|| panic!("no {k} in {:?}", s.metrics.keys().collect::<Vec<_>>()))
 }
 
 #[test]

@@ -2,14 +2,10 @@
 //! the pipeline with exact depth and the ground-truth tracker, and what the run reports.
 #![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
 
-use capsule_slam_framework::config::Config;
-use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::registry::BuildEnv;
-use capsule_slam_io::Dataset;
 use capsule_slam_phantom::writer::write_sequence;
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
-use capsule_slam_run::{RunOptions, RunWriter, Summary, run};
-use capsule_slam_tests::stages::test_registry;
+use capsule_slam_run::{RunOptions, Summary};
+use capsule_slam_tests::runs::{metric, run_with};
 
 fn phantom(dir: &std::path::Path, deform_mm: f64) {
     let spec = PhantomSpec { frames: 40, size: SizePreset::NanEye, deform_mm, surface_every: 10, noise: 0.0, specular: 0.0, ..PhantomSpec::preset(2) };
@@ -18,11 +14,7 @@ fn phantom(dir: &std::path::Path, deform_mm: f64) {
 
 fn oracle_run(data: &std::path::Path, out: &std::path::Path, frames: usize) -> Summary {
     let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", "pipeline.tracker=ground-truth", "input.initial_pose=ground-truth"];
-    let cfg = Config::load(None, &sets.map(String::from)).unwrap();
-    let ds = Dataset::open(data, &cfg.input, None).unwrap();
-    let mut p = Pipeline::build(&cfg, "test", &test_registry(), &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
-    let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
-    run(&ds, &mut p, &mut w, &RunOptions { max_frames: Some(frames), write_map: true, ..RunOptions::default() }, |_| {}).unwrap()
+    run_with(data, out, &sets, &RunOptions { max_frames: Some(frames), write_map: true, ..RunOptions::default() })
 }
 
 #[test]
@@ -37,7 +29,7 @@ fn the_live_surface_of_an_oracle_run_lies_on_the_wall_and_a_moving_wall_shows_in
     assert!(!rigid.join("gt_surface_000010.ply").exists(), "a rigid wall needs no surface per frame");
 
     let still = oracle_run(&rigid, &tmp.path().join("out-rigid"), 40);
-    let live = |s: &Summary, k: &str| *s.metrics.get(k).unwrap_or_else(|| panic!("no {k} in {:?}", s.metrics.keys().collect::<Vec<_>>()));
+    let live = metric;
     // Exact depth at the true poses on a still wall (the rest shape is the truth at any frame):
     // the fused surface lies on it.
     assert!(live(&still, "live_surface_rmse_m") < 1e-4, "{}", live(&still, "live_surface_rmse_m"));

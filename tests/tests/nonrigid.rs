@@ -3,14 +3,10 @@
 //! run reports the warp per frame.
 #![allow(clippy::unwrap_used, reason = "test helpers: a failure is a failed test")]
 
-use capsule_slam_framework::config::Config;
-use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::registry::BuildEnv;
-use capsule_slam_io::Dataset;
 use capsule_slam_phantom::writer::write_sequence;
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
-use capsule_slam_run::{RunOptions, RunWriter, Summary, run};
-use capsule_slam_tests::stages::test_registry;
+use capsule_slam_run::{RunOptions, Summary};
+use capsule_slam_tests::runs::{metric, run_with};
 
 const FRAMES: usize = 90;
 
@@ -23,19 +19,8 @@ fn phantom(dir: &std::path::Path, deform_mm: f64) {
 fn tracked(data: &std::path::Path, out: &std::path::Path, tracker: &str) -> Summary {
     // The default pipeline with sensor depth (its preprocessors remove the highlights, which
     // move with the light and read as motion), as docs/results/nonrigid.md's headline table.
-    let sets = ["pipeline.depth=sensor".to_owned(), format!("pipeline.tracker={tracker}")];
-    let cfg = Config::load(None, &sets).unwrap();
-    let ds = Dataset::open(data, &cfg.input, None).unwrap();
-    let mut p = Pipeline::build(&cfg, "test", &test_registry(), &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
-    let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
-    run(&ds, &mut p, &mut w, &RunOptions { write_map: true, ..RunOptions::default() }, |_| {}).unwrap()
-}
-
-fn metric(s: &Summary, k: &str) -> f64 {
-    if k == "ate_rmse_m" {
-        return s.ate_rmse_m.unwrap();
-    }
-    *s.metrics.get(k).unwrap_or_else(|| panic!("no {k} in {:?}", s.metrics.keys().collect::<Vec<_>>()))
+    let tracker_set = format!("pipeline.tracker={tracker}");
+    run_with(data, out, &["pipeline.depth=sensor", tracker_set.as_str()], &RunOptions { write_map: true, ..RunOptions::default() })
 }
 
 #[test]

@@ -5,14 +5,10 @@
 
 use std::path::Path;
 
-use capsule_slam_framework::config::Config;
-use capsule_slam_framework::pipeline::Pipeline;
-use capsule_slam_framework::registry::BuildEnv;
-use capsule_slam_io::Dataset;
 use capsule_slam_phantom::writer::write_sequence;
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
-use capsule_slam_run::{RunOptions, RunWriter, Summary, run};
-use capsule_slam_tests::stages::test_registry;
+use capsule_slam_run::{RunOptions, Summary};
+use capsule_slam_tests::runs::{metric, run_with};
 
 /// Preset 2's path in 100 frames (about 2 mm per frame) at 250×250, the phantom's own noise
 /// and highlights.
@@ -23,18 +19,7 @@ fn phantom(dir: &Path, deform_mm: f64) {
 
 /// The default pipeline with `sets` on top.
 fn run_default(data: &Path, out: &Path, sets: &[&str]) -> Summary {
-    let cfg = Config::load(None, &sets.iter().map(|s| (*s).to_owned()).collect::<Vec<_>>()).unwrap();
-    let ds = Dataset::open(data, &cfg.input, None).unwrap();
-    let mut p = Pipeline::build(&cfg, "test", &test_registry(), &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
-    let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
-    run(&ds, &mut p, &mut w, &RunOptions { write_map: true, eval_sim3: true, ..RunOptions::default() }, |_| {}).unwrap()
-}
-
-fn metric(s: &Summary, k: &str) -> f64 {
-    if k == "ate_rmse_m" {
-        return s.ate_rmse_m.unwrap();
-    }
-    *s.metrics.get(k).unwrap_or_else(|| panic!("no {k} in {:?}", s.metrics.keys().collect::<Vec<_>>()))
+    run_with(data, out, sets, &RunOptions { write_map: true, eval_sim3: true, ..RunOptions::default() })
 }
 
 #[test]

@@ -164,9 +164,7 @@ impl Config {
     /// plugin names, [`validate::plugin_name_problems`]): an unknown key does not hide the
     /// unknown plugin beside it.
     pub fn load_checked(path: Option<&Path>, overrides: &[String], more: impl Fn(&Config) -> Vec<ConfigProblem>) -> Result<Self, ConfigError> {
-        let base = path.map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
-        // A problem may come from a --set as well as from the file: name both.
-        let source_name = if overrides.is_empty() { base } else { format!("{base} with --set {}", overrides.join(" --set ")) };
+        let source_name = Self::source_name(path, overrides);
         let fail = |problems| ConfigError { source_name: source_name.clone(), problems };
         let mut table = match path {
             Some(p) => {
@@ -193,6 +191,13 @@ impl Config {
             }
             None => Err(fail(problems)),
         }
+    }
+
+    /// How config problems name where they came from: the file (or the built-in default) and,
+    /// since a problem may come from a `--set` as well as from the file, the `--set`s.
+    pub fn source_name(path: Option<&Path>, overrides: &[String]) -> String {
+        let base = path.map_or_else(|| "the built-in default config".to_owned(), |p| p.display().to_string());
+        if overrides.is_empty() { base } else { format!("{base} with --set {}", overrides.join(" --set ")) }
     }
 
     /// Deserialises a table section by section, so that every section's problem is reported.
