@@ -8,7 +8,7 @@ use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::geometry::StampedPose;
 use capsule_slam_io::{Dataset, ply};
 
-use crate::summary::{Summary, frame_row};
+use crate::summary::{CounterSums, Summary, frame_row};
 use crate::truth::{LiveTruth, live_truth, wall_motion};
 use crate::writer::RunWriter;
 use capsule_slam_framework::map::SurfelSet;
@@ -42,6 +42,7 @@ pub fn run(
 ) -> Result<Summary, PipelineError> {
     let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let mut records = Vec::with_capacity(n);
+    let mut counters = CounterSums::default();
     let mut failure: Option<PipelineError> = None;
     let mut failed_at: Option<usize> = None;
     let mut load_warnings: Vec<String> = Vec::new();
@@ -64,7 +65,8 @@ pub fn run(
                 }
                 writer.write_frame(&frame_row(&rec))?;
                 on_frame(&rec);
-                records.push(rec);
+                counters.add(&rec); // the reports are written (`counters.jsonl`) and summed
+                records.push(FrameRecord { reports: Default::default(), ..rec });
             }
             Err(e) => {
                 // A stage's or a frame's load error names its frame; any other: add it.
@@ -93,7 +95,7 @@ pub fn run(
     if failure.is_none() {
         failure = no_result(&records, map.as_ref());
     }
-    let mut summary = Summary::from_records(&records);
+    let mut summary = Summary::from_records(&records, &counters);
     summary.warnings.extend(truth_warning);
     summary.warnings.extend(load_warnings);
     summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);

@@ -48,9 +48,29 @@ pub struct Summary {
     pub warnings: Vec<String>,
 }
 
+/// The running sum and count of every counter the stages reported, keyed `plugin.counter`: what
+/// `summary.json` keeps of the frames' reports, so that a run need not hold every frame's
+/// reports until its end (a long run's memory would grow with its frames).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CounterSums(BTreeMap<String, (f64, usize)>);
+
+impl CounterSums {
+    /// Adds one frame's counters.
+    pub fn add(&mut self, r: &FrameRecord) {
+        for (plugin, rep) in &r.reports {
+            for (k, v) in &rep.counters {
+                let e = self.0.entry(format!("{plugin}.{k}")).or_insert((0.0, 0));
+                e.0 += v;
+                e.1 += 1;
+            }
+        }
+    }
+}
+
 impl Summary {
-    /// Timing and count statistics of the records.
-    pub fn from_records(records: &[FrameRecord]) -> Self {
+    /// Timing and count statistics of the records, with the counters summed over them in
+    /// `counters` (the records' own reports may have been dropped by then).
+    pub fn from_records(records: &[FrameRecord], counters: &CounterSums) -> Self {
         let n = records.len();
         let mut totals: Vec<f64> = records.iter().map(|r| r.total_ms).collect();
         totals.sort_by(f64::total_cmp);
@@ -61,14 +81,6 @@ impl Summary {
         }
         let p95 = if n == 0 { 0.0 } else { totals[((0.95 * n as f64).ceil() as usize).clamp(1, n) - 1] };
         let last = records.last();
-        let mut sums: BTreeMap<String, (f64, usize)> = BTreeMap::new();
-        for r in records {
-            for (k, v) in counters_of(r) {
-                let e = sums.entry(k).or_insert((0.0, 0));
-                e.0 += v;
-                e.1 += 1;
-            }
-        }
         Self {
             status: "complete".into(),
             frames: n,
@@ -79,8 +91,8 @@ impl Summary {
             surfels: last.map_or(0, |r| r.map.total),
             surfels_active: last.map_or(0, |r| r.map.active),
             loop_closures: records.iter().filter(|r| r.loop_closed).count(),
-            counters_mean: sums.iter().map(|(k, (s, n))| (k.clone(), s / *n as f64)).collect(),
-            counters_sum: sums.into_iter().map(|(k, (s, _))| (k, s)).collect(),
+            counters_mean: counters.0.iter().map(|(k, (s, n))| (k.clone(), s / *n as f64)).collect(),
+            counters_sum: counters.0.iter().map(|(k, (s, _))| (k.clone(), *s)).collect(),
             ..Self::default()
         }
     }

@@ -22,6 +22,19 @@ capsule_slam_framework::plugin_params! {
         /// layer (5 % smooth error, presets 1/4/5: surface RMSE 1.09/1.21/1.57 mm at 3 σ,
         /// 0.45/0.63/0.51 mm at 6 σ, 0.45 mm at 9 σ on preset 1; `docs/results/depth-noise.md`).
         pub gate_sigmas: f32 = 6.0; unit = "-"; range = 0.0..=100.0;
+        /// A revisit reactivates: a measurement that no active surfel takes may merge into a
+        /// stable inactive surfel that passes the same gates, which becomes active again.
+        /// ElasticFusion reactivates only after a loop closure, so a capsule that returns to a
+        /// wall it left more than `delta_t` frames ago lays a second map over the first, and
+        /// the map grows on every pass (issue 18, `docs/results/long-runs.md`); `false` is
+        /// ElasticFusion's rule.
+        pub revisit_reactivation: bool = true; unit = "-";
+        /// The depth gate of a revisit (an inactive surfel's), along the ray, widened by the
+        /// pixel's σ as `depth_gate_m` is: tighter than `depth_gate_m`, because an inactive
+        /// surfel of a moving wall was not moved with the active map, and one that sits a
+        /// millimetre off the wall would hold its merges there (its confidence outweighs a
+        /// frame's). Organ scale; no ElasticFusion counterpart.
+        pub revisit_gate_m: f32 = 0.001; unit = "m"; range = 0.0..=10.0;
         /// Association normal gate (ElasticFusion: 0.5 rad).
         pub normal_gate_rad: f32 = 0.5; unit = "rad"; range = 0.0..=3.15;
         /// Model normals with |n_z| below this skip the normal gate (ElasticFusion: 0.75).

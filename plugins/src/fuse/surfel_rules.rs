@@ -114,6 +114,29 @@ pub fn merge(s: &mut Surfel, m: &Measurement, now: u32, radius_ratio: f32) {
     s.t = now;
 }
 
+/// Which surfels an index map holds, and which of them come first at a pixel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Layer {
+    /// Shown wherever it projects (the nearest of its layer wins).
+    First,
+    /// Shown only at pixels that no surfel of [`Layer::First`] reaches.
+    Behind,
+}
+
+/// The layer of the association's index map a surfel is drawn in: the active model first and,
+/// with `revisit` (`revisit_reactivation`), the stable inactive model where no active surfel
+/// projects, so that a measurement of a revisited wall merges into the surfel that mapped it
+/// (and [`merge`] makes that surfel active) instead of starting a second layer.
+pub fn revisit_layer(active: bool, stable: bool, revisit: bool) -> Option<Layer> {
+    if active {
+        Some(Layer::First)
+    } else if revisit && stable {
+        Some(Layer::Behind)
+    } else {
+        None
+    }
+}
+
 /// Reactivates, after a loop closure, the stable inactive surfels seen from the corrected
 /// pose `t_world_cam` (inside the depth range and the field of view): their last sighting
 /// becomes `now` (ElasticFusion marks the matched inactive surfels active). Returns how many.

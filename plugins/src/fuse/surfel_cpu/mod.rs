@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
-use super::surfel_rules::{Measurement, depth_gate, merge, normal_gate, reactivate};
+use super::surfel_rules::{Layer, Measurement, depth_gate, merge, normal_gate, reactivate, revisit_layer};
 pub use splat::{IndexMap, SplatDepths, predict};
 
 /// The CPU surfel map.
@@ -76,7 +76,9 @@ impl SurfelCpu {
         let measured = measurements(frame, t_world_cam, cam, p, ctx);
         let clock = std::time::Instant::now();
         let now = self.now;
-        let index = IndexMap::render(&self.surfels, |s| self.is_active(s, now), cam, t_world_cam, p.max_depth_m);
+        let (stable, revisit) = (p.stable_confidence, p.revisit_reactivation);
+        let layer = |s: &Surfel| revisit_layer(self.is_active(s, now), s.confidence >= stable, revisit);
+        let index = IndexMap::render(&self.surfels, layer, cam, t_world_cam, p.max_depth_m);
         ctx.count("ms_index_map", clock.elapsed().as_secs_f64() * 1e3);
         let (w, h) = (cam.width, cam.height);
         measured
@@ -84,7 +86,7 @@ impl SurfelCpu {
             .map(|pm| {
                 let (x, y, n) = (pm.x, pm.y, pm.n_cam);
                 // Candidates: the index map's 3×3 neighbourhood.
-                let mut best: Option<(f32, u32)> = None;
+                let mut best: Option<((Layer, f32), u32)> = None;
                 for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
                     for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
                         let k = yy * index.width + xx;
@@ -93,12 +95,16 @@ impl SurfelCpu {
                             continue;
                         }
                         let (pc, nm) = (index.p_cam[k], index.n_cam[k]);
-                        if !depth_gate(pc.z, pm.z_live_m, pm.lambda, p.depth_gate_m) || !normal_gate(&nm, &n, p.normal_gate_rad, p.normal_bypass_nz) {
+                        let layer = if self.is_active(&self.surfels[i as usize], now) { Layer::First } else { Layer::Behind };
+                        let gate = if layer == Layer::First { p.depth_gate_m } else { p.revisit_gate_m };
+                        if !depth_gate(pc.z, pm.z_live_m, pm.lambda, gate) || !normal_gate(&nm, &n, p.normal_gate_rad, p.normal_bypass_nz) {
                             continue;
                         }
+                        // An active candidate comes before any inactive one, then the nearest the ray.
                         let perp = (pc.coords - pm.ray_unit * pc.coords.dot(&pm.ray_unit)).norm();
-                        if best.is_none_or(|(d, _)| perp < d) {
-                            best = Some((perp, i));
+                        let rank = (layer, perp);
+                        if best.is_none_or(|(r, _)| rank < r) {
+                            best = Some((rank, i));
                         }
                     }
                 }

@@ -11,6 +11,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
 use crate::fuse::surfel_params::SurfelParams;
+use crate::fuse::surfel_rules::Layer;
 
 const EMPTY: u64 = u64::MAX;
 
@@ -19,11 +20,11 @@ fn pack(depth_m: f32, idx: usize) -> u64 {
 }
 
 fn unpack(v: u64) -> (f32, usize) {
-    (f32::from_bits((v >> 32) as u32), (v & 0xFFFF_FFFF) as usize)
+    (f32::from_bits(((v >> 32) & 0x7FFF_FFFF) as u32), (v & 0xFFFF_FFFF) as usize)
 }
 
-/// The active model as points: per pixel the nearest surfel's index and its camera-frame
-/// position and normal.
+/// The model as points: per pixel the nearest surfel's index (of the first [`Layer`] that
+/// reaches it) and its camera-frame position and normal.
 pub struct IndexMap {
     /// Width.
     pub width: usize,
@@ -36,15 +37,14 @@ pub struct IndexMap {
 }
 
 impl IndexMap {
-    /// Renders the surfels `include` accepts as 1-pixel points seen from `t_world_cam`.
-    pub fn render(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam: &PinholeCamera, t_world_cam: &Iso3, max_depth_m: f32) -> Self {
+    /// Renders the surfels to which `layer` gives a [`Layer`] as 1-pixel points seen from
+    /// `t_world_cam`: per pixel the nearest of the first layer that reaches it.
+    pub fn render(surfels: &[Surfel], layer: impl Fn(&Surfel) -> Option<Layer> + Sync, cam: &PinholeCamera, t_world_cam: &Iso3, max_depth_m: f32) -> Self {
         let (w, h) = (cam.width, cam.height);
         let zbuf: Vec<AtomicU64> = (0..w * h).map(|_| AtomicU64::new(EMPTY)).collect();
         let t_cam_world = t_world_cam.inverse().cast::<f32>();
         surfels.par_iter().enumerate().for_each(|(i, s)| {
-            if !include(s) {
-                return;
-            }
+            let Some(layer) = layer(s) else { return };
             let p = t_cam_world * s.position_m;
             if p.z <= 0.0 || p.z > max_depth_m {
                 return;
@@ -54,7 +54,9 @@ impl IndexMap {
             if u < 0.0 || v < 0.0 || u >= w as f32 || v >= h as f32 {
                 return;
             }
-            zbuf[v as usize * w + u as usize].fetch_min(pack(p.z, i), Ordering::Relaxed);
+            // A positive depth's bits stay below 2³¹: the top bit orders the layers.
+            let behind = if layer == Layer::Behind { 1u64 << 63 } else { 0 };
+            zbuf[v as usize * w + u as usize].fetch_min(behind | pack(p.z, i), Ordering::Relaxed);
         });
         let mut index = vec![u32::MAX; w * h];
         let mut p_cam = vec![Point3::origin(); w * h];

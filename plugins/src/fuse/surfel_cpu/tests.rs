@@ -85,6 +85,45 @@ fn the_active_split_follows_delta_t_and_stale_unstable_surfels_go() {
 }
 
 #[test]
+fn a_revisited_wall_merges_into_its_inactive_surfels_and_reactivates_them() {
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let f = rgbd(&ph, 0);
+    let pose = f.gt_t_world_cam.unwrap();
+    let mut back = f.clone();
+    back.index = 60;
+    let p = SurfelParams { stable_confidence: 0.0, delta_t: 50, subsample: 1, ..SurfelParams::default() };
+    let mut r = StageReport::default();
+    let mut fuse = |s: &mut SurfelCpu, f: &capsule_slam_framework::frame::RgbdFrame| s.fuse(f, &pose, &mut Context::new(f.index, &rig, None, &mut r)).unwrap();
+
+    // Frame 60 sees the wall that frame 0 mapped, now inactive: it merges into it, adds
+    // nothing, and the whole map is active again.
+    let mut s = fuser(p.clone(), &ph);
+    let first = fuse(&mut s, &f);
+    let alpha: Vec<f32> = s.surfels().iter().map(|x| x.confidence).collect();
+    let again = fuse(&mut s, &back);
+    assert_eq!((again.added, again.merged), (0, first.added), "{again:?}");
+    assert_eq!(s.stats().active, first.added);
+    assert!(s.surfels().iter().zip(&alpha).all(|(x, a)| x.t == 60 && x.t0 == 0 && (x.confidence - 2.0 * a).abs() < 1e-5));
+
+    // ElasticFusion's rule (`revisit_reactivation = false`): a second layer of the same size.
+    let mut e = fuser(SurfelParams { revisit_reactivation: false, ..p.clone() }, &ph);
+    fuse(&mut e, &f);
+    let layered = fuse(&mut e, &back);
+    assert_eq!((layered.added, layered.merged), (first.added, 0));
+    assert_eq!(e.stats().total, 2 * first.added);
+
+    // A wall 5 mm behind the old one (beyond the 2 mm gate) is another surface, not a revisit.
+    let mut moved = back.clone();
+    moved.depth_m.data_mut().iter_mut().filter(|d| **d > 0.0).for_each(|d| *d += 0.005);
+    let mut m = fuser(p, &ph);
+    fuse(&mut m, &f);
+    let other = fuse(&mut m, &moved);
+    assert_eq!(other.merged, 0, "{other:?}");
+    assert!(other.added as f64 > 0.95 * first.added as f64, "{other:?} against {first:?}");
+}
+
+#[test]
 fn fused_surfels_lie_on_the_phantom_wall() {
     let ph = phantom(2, 30, 0.0);
     let rig = rig(&ph);

@@ -215,6 +215,9 @@ impl DeviceMap {
             scan_slot: 0,
             add_base: self.sized.cap,
             blend: p.splat_blend_depth_m,
+            revisit: u32::from(p.revisit_reactivation),
+            revisit_gate: p.revisit_gate_m,
+            pad: [0; 2],
         }
     }
 

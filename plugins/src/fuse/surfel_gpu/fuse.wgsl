@@ -59,6 +59,7 @@ struct Params {
     stable: f32, min_depth: f32, max_depth: f32, depth_gate: f32,
     normal_gate: f32, bypass_nz: f32, radius_ratio: f32, scan_base: u32,
     scan_n: u32, scan_slot: u32, add_base: u32, blend: f32,
+    revisit: u32, revisit_gate: f32, pad0: u32, pad1: u32,
 }
 
 const EMPTY: u32 = 0xffffffffu;
@@ -114,10 +115,11 @@ fn clear_z(@builtin(global_invocation_id) g: vec3<u32>) {
     atomicStore(&zconf[k], 0u);
 }
 
-// The index map (surfel_cpu::IndexMap::render): active surfels as 1-pixel points.
+// The index map (surfel_cpu::IndexMap::render): active surfels as 1-pixel points and, with
+// P.revisit, stable inactive ones behind them (surfel_rules::revisit_layer).
 fn index_pixel(i: u32) -> i32 {
     let s = surf_a[i];
-    if (!is_active(s)) { return -1; }
+    if (!is_active(s) && !(P.revisit != 0u && s.conf >= P.stable)) { return -1; }
     let p = to_cam(s.pos);
     if (p.z <= 0.0 || p.z > P.max_depth) { return -1; }
     let u = round_pos(P.fx * p.x / p.z + P.cx);
@@ -126,13 +128,20 @@ fn index_pixel(i: u32) -> i32 {
     return i32(u32(v) * P.width + u32(u));
 }
 
+// The z-test key of the index map: a positive depth's bits stay below 2^31, so the top bit
+// puts an inactive surfel behind every active one (the CPU's bit 63).
+fn index_key(i: u32) -> u32 {
+    let s = surf_a[i];
+    return bitcast<u32>(to_cam(s.pos).z) | select(0x80000000u, 0u, is_active(s));
+}
+
 @compute @workgroup_size(256)
 fn index_depth(@builtin(global_invocation_id) g: vec3<u32>) {
     let i = g.x;
     if (i >= P.n_surfels) { return; }
     let k = index_pixel(i);
     if (k < 0) { return; }
-    atomicMin(&zdepth[u32(k)], bitcast<u32>(to_cam(surf_a[i].pos).z));
+    atomicMin(&zdepth[u32(k)], index_key(i));
 }
 
 @compute @workgroup_size(256)
@@ -141,19 +150,20 @@ fn index_id(@builtin(global_invocation_id) g: vec3<u32>) {
     if (i >= P.n_surfels) { return; }
     let k = index_pixel(i);
     if (k < 0) { return; }
-    if (atomicLoad(&zdepth[u32(k)]) == bitcast<u32>(to_cam(surf_a[i].pos).z)) {
+    if (atomicLoad(&zdepth[u32(k)]) == index_key(i)) {
         atomicMin(&zid[u32(k)], i);
     }
 }
 
-// surfel_rules::depth_gate and normal_gate.
-fn gates(pm: vec3<f32>, nm: vec3<f32>, m: Measurement) -> bool {
-    if (!(abs(pm.z - m.z_live) * m.lambda < P.depth_gate)) { return false; }
+// surfel_rules::depth_gate (`gate`: depth_gate_m, or revisit_gate_m for an inactive surfel)
+// and normal_gate.
+fn gates(pm: vec3<f32>, nm: vec3<f32>, m: Measurement, gate: f32) -> bool {
+    if (!(abs(pm.z - m.z_live) * m.lambda < gate)) { return false; }
     return abs(nm.z) < P.bypass_nz || acos(clamp(dot(nm, m.n_cam), -1.0, 1.0)) < P.normal_gate;
 }
 
 // Association (SurfelCpu::associate): the candidate of the 3×3 neighbourhood nearest the
-// pixel ray wins (first in row order on a tie); the last measurement in pixel order that
+// pixel ray wins, an active one before any inactive one (first in row order on a tie); the last measurement in pixel order that
 // picks a surfel updates it (atomic maximum of its index + 1); the others are added.
 @compute @workgroup_size(256)
 fn associate(@builtin(global_invocation_id) g: vec3<u32>) {
@@ -164,6 +174,7 @@ fn associate(@builtin(global_invocation_id) g: vec3<u32>) {
     let y = m.pixel / P.width;
     var best = EMPTY;
     var best_d = 0.0;
+    var best_behind = false;
     let y0 = select(0u, y - 1u, y > 0u);
     let x0 = select(0u, x - 1u, x > 0u);
     let y1 = min(y + 1u, P.height - 1u);
@@ -175,11 +186,13 @@ fn associate(@builtin(global_invocation_id) g: vec3<u32>) {
             if (i == EMPTY) { continue; }
             let pm = to_cam(surf_a[i].pos);
             let nm = rot_cam(surf_a[i].nrm);
-            if (!gates(pm, nm, m)) { continue; }
+            let behind = !is_active(surf_a[i]);
+            if (!gates(pm, nm, m, select(P.depth_gate, P.revisit_gate, behind))) { continue; }
             let perp = length(pm - m.ray * dot(pm, m.ray));
-            if (best == EMPTY || perp < best_d) {
+            if (best == EMPTY || (!behind && best_behind) || (behind == best_behind && perp < best_d)) {
                 best = i;
                 best_d = perp;
+                best_behind = behind;
             }
         }
     }

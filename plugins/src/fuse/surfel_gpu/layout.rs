@@ -122,7 +122,7 @@ pub struct ViewPixel {
     pub sigma: f32,
 }
 
-/// The uniforms (160 bytes; `Params` in `fuse.wgsl`).
+/// The uniforms (176 bytes; `Params` in `fuse.wgsl`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct Uniforms {
@@ -151,4 +151,8 @@ pub struct Uniforms {
     pub scan_slot: u32,
     pub add_base: u32,
     pub blend: f32,
+    /// `revisit_reactivation` (0 or 1).
+    pub revisit: u32,
+    pub revisit_gate: f32,
+    pub pad: [u32; 2],
 }
