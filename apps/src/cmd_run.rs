@@ -140,18 +140,20 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
     println!("ms per frame      {:.2} mean, {:.2} p95", summary.ms_per_frame_mean, summary.ms_per_frame_p95);
     println!("surfels           {} ({} active)", summary.surfels, summary.surfels_active);
     println!("loop closures     {}", summary.loop_closures);
-    if let Some(a) = summary.ate_rmse_m {
-        let pct = summary
-            .metrics
-            .get("ate_percent_of_path")
-            .map(|p| format!(" ({p:.3} % of the {:.1} mm path)", summary.metrics.get("path_length_m").copied().unwrap_or(0.0) * 1e3))
-            .unwrap_or_default();
-        println!("ATE RMSE (SE3)    {:.3} mm{pct}", a * 1e3);
+    let path_m = summary.metrics.get("path_length_m").copied().unwrap_or(0.0);
+    let pct = |a: f64| if path_m > 0.0 { format!(" ({:.3} % of the {:.1} mm path)", a / path_m * 100.0, path_m * 1e3) } else { String::new() };
+    let se3 = summary.ate_rmse_m.map(|a| format!("ATE RMSE (SE3)    {:.3} mm{}", a * 1e3, pct(a)));
+    let sim3 = match (summary.metrics.get("ate_rmse_sim3_m"), summary.metrics.get("sim3_scale")) {
+        (Some(a), Some(scale)) => Some(format!("ATE RMSE (Sim3)   {:.3} mm{}, scale {scale:.3}", a * 1e3, pct(*a))),
+        _ => None,
+    };
+    // Without a metric scale the similarity alignment leads and the rigid one is marked.
+    let lines = if summary.metric_scale { [se3, sim3] } else { [sim3, se3.map(|l| format!("{l} (the scale is unknown: not meaningful)"))] };
+    for l in lines.into_iter().flatten() {
+        println!("{l}");
     }
-    if let (Some(a), Some(scale)) = (summary.metrics.get("ate_rmse_sim3_m"), summary.metrics.get("sim3_scale")) {
-        let path_m = summary.metrics.get("path_length_m").copied().unwrap_or(0.0);
-        let pct = if path_m > 0.0 { format!(" ({:.3} % of path)", a / path_m * 100.0) } else { String::new() };
-        println!("ATE RMSE (Sim3)   {:.3} mm{pct}, scale {scale:.3}", a * 1e3);
+    if !summary.metric_scale {
+        println!("metric scale      unknown (no calibration for it): figures are Sim(3)-aligned");
     }
     if let Some(r) = summary.metrics.get("surface_rmse_m") {
         let c = summary.metrics.get("surface_completeness_1mm").copied().unwrap_or(0.0);

@@ -72,13 +72,23 @@ fn run_on_a_tum_folder_writes_every_output_and_prints_the_metrics() {
 }
 
 #[test]
-fn the_monocular_default_on_an_input_without_a_light_model_says_what_to_do() {
+fn the_monocular_default_without_a_light_model_assumes_one_and_says_the_scale_is_unknown() {
     let tmp = tempfile::tempdir().unwrap();
-    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 2);
+    capsule_slam_tests::fixtures::write_dataset(tmp.path(), 8);
     let out = tmp.path().join("out");
-    let (ok, _, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "-q"]);
-    assert!(!ok);
-    assert!(err.contains("light.toml") && err.contains("pipeline.depth=sensor"), "{err}");
+    let (ok, stdout, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    // The warnings name the missing file and what it costs; the figures lead with Sim(3).
+    assert!(err.contains("light.toml") && err.contains("unknown scale") && err.contains("calibrate-light"), "{err}");
+    let (sim3, se3) = (stdout.find("ATE RMSE (Sim3)"), stdout.find("ATE RMSE (SE3)"));
+    assert!(sim3.is_some() && se3.is_some() && sim3 < se3 && stdout.contains("metric scale      unknown"), "{stdout}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["metric_scale"], false);
+    assert_eq!(summary["status"], "complete");
+    // A light.toml that is there but broken is still an error naming it.
+    std::fs::write(tmp.path().join("light.toml"), "gain = \"bright\"\n").unwrap();
+    let (ok, _, err) = output(&["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "--force", "-q"]);
+    assert!(!ok && err.contains("light.toml") && err.contains("gain"), "{err}");
 }
 
 #[test]

@@ -32,15 +32,23 @@ fn the_default_pipelines_keep_their_accuracy_on_a_short_phantom() {
     let rgbd = run_default(&rigid, &tmp.path().join("rgbd"), &["pipeline.depth=sensor"]);
     let mono = run_default(&rigid, &tmp.path().join("mono"), &[]);
     let wave = run_default(&moving, &tmp.path().join("wave"), &["pipeline.depth=sensor"]);
-    for s in [&rgbd, &mono, &wave] {
+    // The same frames without their light.toml: the light is assumed, the scale unknown.
+    let bare = tmp.path().join("bare");
+    phantom(&bare, 0.0);
+    std::fs::remove_file(bare.join("light.toml")).unwrap();
+    let uncalibrated = run_default(&bare, &tmp.path().join("uncalibrated"), &[]);
+    for s in [&rgbd, &mono, &wave, &uncalibrated] {
         assert_eq!(s.status, "complete");
     }
+    assert!(rgbd.metric_scale && mono.metric_scale && !uncalibrated.metric_scale);
+    assert!(uncalibrated.warnings.iter().any(|w| w.contains("scale is unknown")), "{:?}", uncalibrated.warnings);
     // (what, measured, bound): measured at the commit that adds this test; each bound about 3×.
     let guards = [
         ("RGB-D ATE % of path", metric(&rgbd, "ate_percent_of_path"), 0.0109, 0.035),
         ("RGB-D surface RMSE m", metric(&rgbd, "surface_rmse_m"), 5.0e-5, 1.5e-4),
         ("monocular Sim(3) ATE % of path", 100.0 * metric(&mono, "ate_rmse_sim3_m") / metric(&mono, "path_length_m"), 0.510, 1.5),
         ("monocular surface RMSE m", metric(&mono, "surface_rmse_m"), 9.2e-4, 2.5e-3),
+        ("uncalibrated monocular Sim(3) ATE % of path", metric(&uncalibrated, "ate_percent_of_path"), 0.515, 1.5),
         ("moving wall (2 mm) ATE % of path", metric(&wave, "ate_percent_of_path"), 0.362, 1.0),
         ("moving wall (2 mm) live surface RMSE m", metric(&wave, "live_surface_rmse_m"), 4.7e-4, 1.2e-3),
     ];

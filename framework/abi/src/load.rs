@@ -416,6 +416,11 @@ impl Preprocessor for LibraryStage {
 }
 
 impl DepthEstimator for LibraryStage {
+    /// The ABI's depth is in metres (`estimate_depth`'s contract).
+    fn metric_scale(&self) -> bool {
+        true
+    }
+
     fn estimate(&mut self, frame: &CameraFrame, _ctx: &mut Context) -> Result<DepthEstimate, StageError> {
         let f = self.depth_fn()?;
         let reference = frame.views.reference();

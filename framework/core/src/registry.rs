@@ -65,6 +65,10 @@ pub struct BuildEnv {
     pub input_dir: Option<PathBuf>,
     /// The depth noise model `camera.toml` declares, if any (the `sensor` stage's σ).
     pub depth_noise: Option<crate::depth_noise::DepthNoiseModel>,
+    /// Whether the pipeline measures or estimates depth, once its depth stage is built
+    /// (`Pipeline::build` builds it first): a stage whose calibration is missing may fall back
+    /// to what suits the depth it will see (`vignetting`'s `source = "auto"`).
+    pub depth_source: Option<crate::frame::DepthSource>,
     /// The application's GPU, for plugins that run on one (opened on their first request).
     #[cfg(feature = "gpu")]
     pub gpu: capsule_slam_gpu::GpuHandle,
@@ -78,6 +82,7 @@ impl BuildEnv {
             rig,
             input_dir,
             depth_noise: None,
+            depth_source: None,
             #[cfg(feature = "gpu")]
             gpu: capsule_slam_gpu::GpuHandle::new(),
         }
@@ -92,6 +97,12 @@ impl BuildEnv {
     /// The same environment with the depth noise model of the input's `camera.toml`.
     pub fn with_depth_noise(mut self, model: Option<crate::depth_noise::DepthNoiseModel>) -> Self {
         self.depth_noise = model;
+        self
+    }
+
+    /// The same environment, for a pipeline whose depth is `source`.
+    pub fn with_depth_source(mut self, source: crate::frame::DepthSource) -> Self {
+        self.depth_source = Some(source);
         self
     }
 

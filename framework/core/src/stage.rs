@@ -60,6 +60,13 @@ pub trait DepthEstimator: Send {
     fn source(&self) -> crate::frame::DepthSource {
         crate::frame::DepthSource::Estimated
     }
+    /// Whether the depth is in metres (default: if it is measured). An estimator whose scale
+    /// rests on a calibration says so when it has one (`near-light-sfs` with a `light.toml`);
+    /// without, the run's headline figures are Sim(3) and `summary.json` says
+    /// `"metric_scale": false`.
+    fn metric_scale(&self) -> bool {
+        self.source() == crate::frame::DepthSource::Measured
+    }
     /// Estimates depth for the frame's reference view. `ctx.prediction` holds the model
     /// prediction at the previous pose, for estimators that use the map (e.g. its albedo).
     fn estimate(&mut self, frame: &CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError>;

@@ -47,7 +47,9 @@ pub fn run(
     let mut failed_at: Option<usize> = None;
     let mut load_warnings: Vec<String> = Vec::new();
     let (truth, truth_warning) = load_truth(dataset);
-    let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3: opts.eval_sim3, ..EvalOptions::default() };
+    // Without a metric scale only a similarity alignment means anything.
+    let sim3 = opts.eval_sim3 || !pipeline.metric_scale();
+    let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3, ..EvalOptions::default() };
     let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
     for i in 0..n {
         let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
@@ -95,10 +97,7 @@ pub fn run(
     if failure.is_none() {
         failure = no_result(&records, map.as_ref());
     }
-    let mut summary = Summary::from_records(&records, &counters);
-    summary.warnings.extend(truth_warning);
-    summary.warnings.extend(load_warnings);
-    summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
+    let mut summary = summarise(pipeline, &records, &counters, truth_warning.into_iter().chain(load_warnings));
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
     if !abs_rel.is_empty() {
@@ -112,6 +111,19 @@ pub fn run(
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// The summary of the records before the evaluation: the pipeline, its scale and the run's
+/// warnings.
+fn summarise(pipeline: &Pipeline, records: &[FrameRecord], counters: &CounterSums, warnings: impl Iterator<Item = String>) -> Summary {
+    let mut summary = Summary::from_records(records, counters);
+    summary.metric_scale = pipeline.metric_scale();
+    if !summary.metric_scale {
+        summary.warnings.push("the depth's scale is unknown (estimated without the calibration its scale rests on, e.g. no light.toml): the trajectory and the map are up to scale, and the figures are Sim(3)-aligned".into());
+    }
+    summary.warnings.extend(warnings);
+    summary.pipeline = serde_json::to_value(pipeline.resolved_config()).unwrap_or(serde_json::Value::Null);
+    summary
 }
 
 /// `summary.json`'s status of a failed run: `failed at frame N: reason` where a frame failed.

@@ -30,6 +30,10 @@ pub struct Summary {
     pub surfels_active: usize,
     /// Loop closures applied.
     pub loop_closures: usize,
+    /// Whether the depth, the map and the trajectory are in metres: `false` for a depth
+    /// estimated without the calibration its scale rests on (a monocular run without
+    /// `light.toml`), whose headline figures are then Sim(3)-aligned.
+    pub metric_scale: bool,
     /// Mean of every counter the stages reported, keyed `plugin.counter`.
     pub counters_mean: BTreeMap<String, f64>,
     /// Sum of every counter over the frames that reported it (event counts such as

@@ -41,6 +41,18 @@ impl Default for LightModel {
 }
 
 impl LightModel {
+    /// The light a monocular run assumes when the input has no `light.toml` (issue 18): the
+    /// light at the lens (`position_m` 0), the sRGB-like encoding (γ 2.2), a Lambertian LED
+    /// (`spot_exponent` 1), an ambient of 2 % of the light, and the lens vignetting
+    /// V = 1 − 0.5 r², the best of V = 1 − v r² for v ∈ {0, 0.25, 0.5, 0.75} measured on the
+    /// phantom's presets 1, 2 and 5 with their `light.toml` removed (0.75 did better on some
+    /// and lost a sequence; `docs/results/uncalibrated-monocular.md`). The gain is 1 at 25 mm: the albedo and the
+    /// gain are not known, so neither is the scale of the depth, and a run with this light
+    /// reports `metric_scale: false` and leads with its Sim(3) figures.
+    pub fn uncalibrated() -> Self {
+        Self { gain: 1.0, ref_distance_m: 0.025, ambient: 0.02, gamma: 2.2, position_m: [0.0; 3], spot_exponent: 1.0, vignetting: vec![-0.5, 0.0] }
+    }
+
     /// Every invalid field as `(key, message)`.
     pub fn problems(&self) -> Vec<(&'static str, String)> {
         let mut out = Vec::new();

@@ -66,7 +66,7 @@ impl Pipeline {
     pub fn build(config: &Config, source_name: &str, registry: &Registry, env: &BuildEnv) -> Result<Self, ConfigError> {
         let resolved_tables = validate(config, registry, env.rig.kind(), source_name)?;
         let mut problems = Vec::new();
-        let mut build = |name: &str| -> Option<Stage> {
+        let mut build = |name: &str, env: &BuildEnv| -> Option<Stage> {
             let entry = registry.get(name)?;
             let table = resolved_tables.get(name).cloned().unwrap_or_default();
             match entry.build(&table, env) {
@@ -82,11 +82,16 @@ impl Pipeline {
             }
         };
         let p = &config.pipeline;
-        let pre: Vec<_> = p.preprocess.iter().map(|n| (n.clone(), build(n))).collect();
-        let depth = build(&p.depth);
-        let tracker = build(&p.tracker);
-        let fuser = build(&p.fuser);
-        let closer = p.loop_closer().map(|n| (n.to_owned(), build(n)));
+        // The depth stage first: the others may fall back to what suits its depth.
+        let depth = build(&p.depth, env);
+        let env = match &depth {
+            Some(Stage::DepthEstimator(d)) => &env.clone().with_depth_source(d.source()),
+            _ => env,
+        };
+        let pre: Vec<_> = p.preprocess.iter().map(|n| (n.clone(), build(n, env))).collect();
+        let tracker = build(&p.tracker, env);
+        let fuser = build(&p.fuser, env);
+        let closer = p.loop_closer().map(|n| (n.to_owned(), build(n, env)));
         let fail = |problems: Vec<ConfigProblem>| ConfigError { source_name: source_name.to_owned(), problems };
         if !problems.is_empty() {
             return Err(fail(problems));
@@ -148,6 +153,12 @@ impl Pipeline {
     /// pipeline's scale is only estimated: it is evaluated with Sim(3) alignment).
     pub fn depth_source(&self) -> DepthSource {
         self.stages.depth.1.source()
+    }
+
+    /// Whether the depth, and so the map and the trajectory, are in metres
+    /// ([`crate::DepthEstimator::metric_scale`]).
+    pub fn metric_scale(&self) -> bool {
+        self.stages.depth.1.metric_scale()
     }
 
     /// Map counts.

@@ -67,6 +67,10 @@ pub struct NearLightSfs {
     previous: Option<Vec<f64>>,
     /// Sparse factorisations of the last frame's solve.
     factorisations: usize,
+    /// Whether the light came from a calibration (else the depth's scale is unknown).
+    calibrated: bool,
+    /// A warning of the build, told on the first frame.
+    pending_warning: Option<String>,
 }
 
 /// What depends only on the camera.
@@ -85,10 +89,23 @@ impl Plugin for NearLightSfs {
     const SUMMARY: &'static str = "metric depth from one image under the capsule's near light (albedo cos θ / r², calibrated light.toml): Gauss-Newton on a log-depth grid from the fall-off start";
     type Params = NearLightSfsParams;
 
+    /// The light of `light_file`; without that file, [`LightModel::uncalibrated`] (a depth of
+    /// unknown scale, warned on the first frame). A file that exists but cannot be read is an
+    /// error: it was meant to be used.
     fn build(params: NearLightSfsParams, env: &BuildEnv) -> Result<Self, StageError> {
         let path = env.input_file(&params.light_file);
+        if !path.exists() {
+            let mut s = Self::with_light(params, LightModel::uncalibrated());
+            s.calibrated = false;
+            s.pending_warning = Some(format!(
+                "no {}: the light is assumed ({}), so the depth, the map and the trajectory have an unknown scale (figures are Sim(3)-aligned); `capsule-slam calibrate-light` fits the capsule's light.toml",
+                path.display(),
+                "at the lens, γ 2.2, spot exponent 1, ambient 0.02, V = 1 − 0.5 r²"
+            ));
+            return Ok(s);
+        }
         let light = capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
-            StageError::invalid_input(format!("{e}; `near-light-sfs` needs the capsule's light model: put light.toml in the input folder (the phantom writes it; `capsule-slam calibrate-light` fits one), or set plugins.near-light-sfs.light_file; for an RGB-D input use the measured depth: --set pipeline.depth=sensor"))
+            StageError::invalid_input(format!("{e}; `near-light-sfs` reads the capsule's light model there: fix the file (`capsule-slam calibrate-light` fits one), or remove it to run with an assumed light and an unknown scale; for an RGB-D input use the measured depth: --set pipeline.depth=sensor"))
         })?;
         Ok(Self::with_light(params, light))
     }
@@ -98,7 +115,7 @@ impl NearLightSfs {
     /// An estimator with a given light model.
     pub fn with_light(params: NearLightSfsParams, light: LightModel) -> Self {
         let decode = std::array::from_fn(|v| light.decode(v as f64 / 255.0));
-        Self { params, light, tables: None, decode, previous: None, factorisations: 0 }
+        Self { params, light, tables: None, decode, previous: None, factorisations: 0, calibrated: true, pending_warning: None }
     }
 
     fn tables(&mut self, cam: &PinholeCamera) -> Result<&Tables, StageError> {
@@ -259,7 +276,14 @@ fn solve_levels(
 }
 
 impl DepthEstimator for NearLightSfs {
+    fn metric_scale(&self) -> bool {
+        self.calibrated
+    }
+
     fn estimate(&mut self, frame: &CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError> {
+        if let Some(w) = self.pending_warning.take() {
+            ctx.warn(w);
+        }
         let ignore = frame.masks.union();
         let divided = frame.photometry.divided;
         if let Some(d) = divided

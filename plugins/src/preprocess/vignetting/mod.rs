@@ -70,8 +70,9 @@ pub enum Source {
 capsule_slam_framework::plugin_params! {
     /// Parameters of `vignetting`.
     pub struct VignettingParams {
-        /// Where the fall-off comes from: `light`, `file`, `sequence`, or `auto` (the first of
-        /// them whose file the input folder has).
+        /// Where the fall-off comes from: `light`, `file`, `sequence`, or `auto` (`light` or
+        /// `file` if the input folder has its file; else, when the depth is estimated, the
+        /// assumed light of an uncalibrated capsule, and `sequence` when it is measured).
         pub source: Source = Source::Auto; unit = "-";
         /// What to divide: `lens-and-light` (for near-light shape from shading) or `flat-field`
         /// (for a distant-light model such as tsai-shah).
@@ -126,6 +127,8 @@ pub struct Vignetting {
     learner: Learner,
     table: Option<Table>,
     warned_twice: bool,
+    /// A warning of the build, told on the first frame.
+    pending_warning: Option<String>,
 }
 
 impl Plugin for Vignetting {
@@ -135,9 +138,19 @@ impl Plugin for Vignetting {
 
     fn build(params: VignettingParams, env: &BuildEnv) -> Result<Self, StageError> {
         let path = |name: &str| env.input_file(name);
+        let monocular = env.depth_source == Some(capsule_slam_framework::frame::DepthSource::Estimated);
         let chosen = match params.source {
             Source::Auto if path(&params.light_file).is_file() => Source::Light,
             Source::Auto if path(&params.vignetting_file).is_file() => Source::File,
+            // Without a calibration, a depth estimated from the shading must see the fall-off
+            // its own assumed light divides (`near-light-sfs`), not one learnt from that depth.
+            Source::Auto if monocular => {
+                let mut v = Self::new(params, FalloffSource::Light(LightModel::uncalibrated()));
+                v.pending_warning = Some(
+                    "vignetting: no light.toml or vignetting.toml in the input folder: the fall-off of the assumed light is divided (V = 1 − 0.5 r², spot exponent 1; `capsule-slam calibrate-light` or `calibrate-vignetting` measure the capsule's)".into(),
+                );
+                return Ok(v);
+            }
             Source::Auto => Source::Sequence,
             s => s,
         };
@@ -172,7 +185,7 @@ impl Vignetting {
     /// A corrector from its parameters and fall-off source (`params.source` is ignored).
     pub fn new(params: VignettingParams, source: FalloffSource) -> Self {
         let learner = Learner::new(params.degree as usize, params.gamma);
-        Self { params, source, learner, table: None, warned_twice: false }
+        Self { params, source, learner, table: None, warned_twice: false, pending_warning: None }
     }
 
     /// The encoding exponent the correction assumes.
@@ -235,6 +248,9 @@ impl Vignetting {
 
 impl Preprocessor for Vignetting {
     fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
+        if let Some(w) = self.pending_warning.take() {
+            ctx.warn(w);
+        }
         if frame.photometry.divided.is_some() {
             if !self.warned_twice {
                 self.warned_twice = true;

@@ -122,7 +122,9 @@ capsule_slam_framework::plugin_params! {
         /// The capsule's light model (relative to the input folder), which relights the live
         /// intensity to where each point stands in the reference view (`gn.rs`: the light moves
         /// with the camera; `docs/results/depth-noise.md`: ATE −18 to −42 % on exact depth). A
-        /// missing file is a warning and intensities are compared as they are; "": always so.
+        /// missing file is a warning, and intensities are compared as they are (measured depth)
+        /// or relit by the assumed light of an uncalibrated capsule (estimated depth,
+        /// `LightModel::uncalibrated`); "": always compared as they are.
         pub light_file: String = "light.toml".to_string(); unit = "path";
         /// The photometric term ignores the pixels within this distance of a detected highlight
         /// (the `specular` mask of the `reflection` stage; pixels of the full image): the
@@ -194,7 +196,7 @@ pub struct IcpRgb {
     velocity: Option<Iso3>,
     /// The capsule's light model, which relights the photometric term (`light_file`).
     light: Option<Lighting>,
-    /// Why no light model was loaded although `light_file` names one (told on the first frame).
+    /// Why the light model is not the one `light_file` names (told on the first frame).
     missing: Option<String>,
     /// The table that multiplies a divided fall-off back in (`relight::Undivide`).
     undivide: Option<Undivide>,

@@ -120,12 +120,23 @@ impl Lighting {
 }
 
 /// The light model `light_file` names (relative to the input folder), or none with the reason
-/// when the file does not exist; a file that exists but does not parse is an error.
+/// when the file does not exist; a file that exists but does not parse is an error. Without the
+/// file, a pipeline that estimates depth from the shading (monocular) relights with the light
+/// its depth stage then assumes, [`LightModel::uncalibrated`] (the relighting needs only where
+/// the light is and how it spreads, not its unknown gain); one that measures depth (any
+/// lighting, a room) compares unlit.
 pub fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<Lighting>, Option<String>), StageError> {
     if light_file.is_empty() {
         return Ok((None, None));
     }
     let path = env.input_file(light_file);
+    if !path.exists() && env.depth_source == Some(capsule_slam_framework::frame::DepthSource::Estimated) {
+        let why = format!(
+            "no {} (light_file): the photometric term is relit by the assumed light of an uncalibrated capsule (at the lens, spot exponent 1; `capsule-slam calibrate-light` fits the capsule's light.toml; light_file = \"\" compares unlit)",
+            path.display()
+        );
+        return Ok((Some(Lighting::new(LightModel::uncalibrated())), Some(why)));
+    }
     if !path.exists() {
         let why = format!(
             "no {} (light_file): the photometric term compares intensities unlit; the capsule's light.toml relights them (the phantom writes it, `capsule-slam calibrate-light` fits one; light_file = \"\" turns this off)",
