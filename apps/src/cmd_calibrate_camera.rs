@@ -94,6 +94,7 @@ pub fn run(args: &CalibrateCameraArgs) -> anyhow::Result<()> {
         distortion: Some(DistortionSpec::from_model(&fit.lens)),
         fov_radius_px: None,
         baseline_m: None,
+        right: None,
         depth_noise: None,
     };
     write_camera_file(&args.out, &file)?;

@@ -23,6 +23,7 @@ pub fn camera() -> CameraFile {
         distortion: None,
         fov_radius_px: None,
         baseline_m: None,
+        right: None,
         depth_noise: None,
     }
 }
@@ -99,4 +100,41 @@ pub fn copy_dir(src: &Path, dst: &Path) {
             std::fs::copy(&p, &to).unwrap();
         }
     }
+}
+
+/// The right camera of [`write_stereo_dataset`]: the left's intrinsics shifted a little, 5 mm
+/// to the right of the left and turned 1° about y (toward the left's axis).
+pub fn right_camera() -> capsule_slam_framework::stereo::RightCameraFile {
+    let a = 1f64.to_radians();
+    capsule_slam_framework::stereo::RightCameraFile {
+        fx: Some(41.0),
+        fy: Some(40.5),
+        cx: Some(24.0),
+        cy: Some(19.0),
+        // x_right = R x_left + t with the right centre at +5 mm along the left's x: t = −R c.
+        rotation: Some(vec![a.cos(), 0.0, -a.sin(), 0.0, 1.0, 0.0, a.sin(), 0.0, a.cos()]),
+        translation_m: Some(vec![-0.005 * a.cos(), 0.0, -0.005 * a.sin()]),
+        ..Default::default()
+    }
+}
+
+/// [`write_dataset`] with a right view per frame (`rgb_right/`, `rgb_right.txt`, stamped 2 ms
+/// after the left) from [`right_camera`], and the `[right]` table in `camera.toml`.
+pub fn write_stereo_dataset(dir: &Path, n: usize) -> Vec<StampedPose> {
+    let gt = write_dataset(dir, n);
+    let mut cam = camera();
+    cam.right = Some(right_camera());
+    write_camera_file(&dir.join("camera.toml"), &cam).unwrap();
+    let right = right_camera();
+    let t_right_left = right.t_right_left().unwrap();
+    let right_file = CameraFile { fx: right.fx.unwrap(), fy: right.fy.unwrap(), cx: right.cx.unwrap(), cy: right.cy.unwrap(), ..camera() };
+    std::fs::create_dir_all(dir.join("rgb_right")).unwrap();
+    let mut list = std::fs::File::create(dir.join("rgb_right.txt")).unwrap();
+    for p in &gt {
+        let i = gt.iter().position(|q| q.timestamp_s == p.timestamp_s).unwrap();
+        let (rgb, _) = render(&right_file, &(p.t_world_cam * t_right_left.inverse()));
+        images::write_rgb(&dir.join(format!("rgb_right/{i:04}.png")), &rgb).unwrap();
+        writeln!(list, "{:.6} rgb_right/{i:04}.png", p.timestamp_s + 0.002).unwrap();
+    }
+    gt
 }

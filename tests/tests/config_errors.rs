@@ -142,6 +142,7 @@ fn a_camera_override_is_validated() {
             distortion: None,
             fov_radius_px: Some(-2.0),
             baseline_m: None,
+            right: None,
             depth_noise: None,
         }),
         ..load(OK, &[]).unwrap()

@@ -6,8 +6,10 @@ use nalgebra::{Point2, Point3};
 use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigProblem;
+use crate::geometry::Iso3;
 use crate::image::Mask;
 use crate::lens::{DistortionSpec, LensModel};
+use crate::stereo::RightCameraFile;
 
 /// The intrinsics file of an input folder, `camera.toml`; the `[camera]` config section has the
 /// same schema. Other tools write it, so its keys are fixed.
@@ -43,6 +45,10 @@ pub struct CameraFile {
     /// the trackers' own noise floors stand alone).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_noise: Option<crate::depth_noise::DepthNoiseModel>,
+    /// The right camera of a calibrated stereo rig (`[right]`, [`crate::stereo`]); this file's
+    /// top level is then the left camera.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub right: Option<RightCameraFile>,
 }
 
 fn default_depth_scale() -> f64 {
@@ -94,6 +100,16 @@ impl CameraFile {
         if let Some(n) = &self.depth_noise {
             out.extend(n.problems(&format!("{prefix}depth_noise.")));
         }
+        if let Some(r) = &self.right {
+            out.extend(r.problems(&format!("{prefix}right.")));
+            if self.baseline_m.is_some() {
+                out.push(ConfigProblem::new(
+                    format!("{prefix}baseline_m"),
+                    "both baseline_m and a [right] table describe the stereo rig",
+                    "keep [right] (a calibrated rig) or baseline_m (two identical rectified cameras), not both",
+                ));
+            }
+        }
         out
     }
 
@@ -111,14 +127,28 @@ impl CameraFile {
         }
     }
 
-    /// The rig: stereo when a baseline is given, mono otherwise.
+    /// The rig: stereo with a `[right]` table (its own intrinsics, lens and extrinsics) or a
+    /// `baseline_m` (two identical cameras, the right along +x), mono otherwise. A `[right]`
+    /// table with a problem gives a mono rig: call [`CameraFile::problems`] first.
     pub fn rig(&self) -> Rig {
         let camera = self.camera();
-        match self.baseline_m {
-            Some(baseline_m) => Rig::Stereo { right: camera.clone(), left: camera, baseline_m },
-            None => Rig::Mono(camera),
+        let right = self.right.as_ref().and_then(|r| Some((right_camera(r, camera.width, camera.height)?, r.t_right_left()?)));
+        match (right, self.baseline_m) {
+            (Some((right, t_right_left)), _) => Rig::Stereo { left: camera, right, t_right_left },
+            (None, Some(b)) => Rig::Stereo { right: camera.clone(), left: camera, t_right_left: crate::stereo::rectified_t_right_left(b) },
+            (None, None) => Rig::Mono(camera),
         }
     }
+}
+
+/// The right camera of a `[right]` table, with the left's image size (`None` while a field is
+/// missing or wrong: [`CameraFile::problems`] says which).
+fn right_camera(r: &RightCameraFile, width: usize, height: usize) -> Option<PinholeCamera> {
+    let (fx, fy, cx, cy) = (r.fx?, r.fy?, r.cx?, r.cy?);
+    let mut c = PinholeCamera::new(width, height, fx, fy, cx, cy);
+    c.distortion = r.distortion.as_ref().and_then(DistortionSpec::model).filter(|d| !d.is_identity());
+    c.fov_radius_px = r.fov_radius_px;
+    Some(c)
 }
 
 /// A pinhole camera, with the lens in front of it. The stages see undistorted images: an input
@@ -235,14 +265,15 @@ pub enum ViewKind {
 pub enum Rig {
     /// One camera.
     Mono(PinholeCamera),
-    /// A rectified stereo pair; `left` is the reference camera of the map.
+    /// A stereo pair; `left` is the reference camera of the map.
     Stereo {
         /// Reference camera.
         left: PinholeCamera,
-        /// Second camera, `baseline_m` along +x of the left one.
+        /// Second camera.
         right: PinholeCamera,
-        /// Baseline, metres.
-        baseline_m: f64,
+        /// The left camera's frame in the right's: `x_right = t_right_left · x_left`
+        /// (OpenCV's `stereoCalibrate` R and T).
+        t_right_left: Iso3,
     },
 }
 
@@ -252,6 +283,14 @@ impl Rig {
         match self {
             Rig::Mono(c) => c,
             Rig::Stereo { left, .. } => left,
+        }
+    }
+
+    /// The stereo baseline, metres (`None` for mono).
+    pub fn baseline_m(&self) -> Option<f64> {
+        match self {
+            Rig::Mono(_) => None,
+            Rig::Stereo { t_right_left, .. } => Some(crate::stereo::baseline_m(t_right_left)),
         }
     }
 
@@ -309,6 +348,7 @@ mod tests {
             distortion: None,
             fov_radius_px: None,
             baseline_m: None,
+            right: None,
             depth_noise: Some(crate::depth_noise::DepthNoiseModel { absolute_m: -0.001, relative: 0.01, quadratic_per_m: 0.0, correlation_px: 0.0 }),
         };
         let keys: Vec<_> = f.problems("camera.").into_iter().map(|p| p.key).collect();

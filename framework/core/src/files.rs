@@ -18,7 +18,7 @@ pub fn read_camera_file(path: &Path) -> Result<CameraFile, LoadError> {
         LoadError::parse(
             path,
             line,
-            format!("{} (expected keys: width, height, fx, fy, cx, cy, and optionally depth_scale, distortion = [k1, k2, p1, p2, k3] or {{ model = \"radial-tangential\" | \"equidistant\", coefficients = [...] }}, fov_radius_px, baseline_m, depth_noise)", e.message()),
+            format!("{} (expected keys: width, height, fx, fy, cx, cy, and optionally depth_scale, distortion = [k1, k2, p1, p2, k3] or {{ model = \"radial-tangential\" | \"equidistant\", coefficients = [...] }}, fov_radius_px, baseline_m, depth_noise, and a [right] table: fx, fy, cx, cy, rotation, translation_m, optionally distortion, fov_radius_px)", e.message()),
         )
     })?;
     let problems = cam.problems("");

@@ -109,7 +109,8 @@ impl Masks {
 pub enum Views {
     /// One camera.
     Mono(Rgb8),
-    /// A rectified stereo pair.
+    /// A stereo pair, each view undistorted to its own pinhole camera (the rig's `left` and
+    /// `right`, related by its extrinsics; not rectified: a stereo stage rectifies).
     Stereo {
         /// Reference (left) image.
         left: Rgb8,

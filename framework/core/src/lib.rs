@@ -43,6 +43,7 @@ pub mod params;
 pub mod pipeline;
 pub mod registry;
 pub mod stage;
+pub mod stereo;
 
 /// Re-exported so that [`register!`] works from plugin crates without naming inventory.
 pub use inventory;

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use capsule_slam_framework::camera::{CameraFile, Rig};
+use capsule_slam_framework::camera::{CameraFile, PinholeCamera, Rig};
 use capsule_slam_framework::config::InputConfig;
 use capsule_slam_framework::error::LoadError;
 use capsule_slam_framework::files::read_camera_file;
@@ -20,6 +20,8 @@ use crate::{images, tum};
 struct Entry {
     timestamp_s: f64,
     rgb: PathBuf,
+    /// The right view of a stereo sequence (`rgb_right.txt`).
+    rgb_right: Option<PathBuf>,
     depth: Option<PathBuf>,
     gt: Option<Iso3>,
 }
@@ -33,9 +35,12 @@ pub struct Dataset {
     ground_truth: Vec<StampedPose>,
     has_depth: bool,
     dropped_without_depth: usize,
+    dropped_without_right: usize,
     out_of_view: Option<Mask>,
     /// The map from the lens's images to the pinhole ones, when `camera.toml` names a lens.
     undistortion: Option<Undistortion>,
+    /// The same for the right camera of a stereo rig.
+    right_undistortion: Option<Undistortion>,
 }
 
 /// The undistortion of a lens camera (after checking that `first_rgb` has the camera's size: the
@@ -54,6 +59,57 @@ fn view_maps(camera: &CameraFile, first_rgb: &Path) -> Result<(Option<Undistorti
         m
     });
     Ok((None, out_of_view))
+}
+
+/// The right views of a stereo sequence (`rgb_right.txt`), checked against the camera: a stereo
+/// list needs a stereo rig and a stereo rig needs its list.
+fn stereo_list(dir: &Path, camera: &CameraFile) -> Result<Option<Vec<tum::ListEntry>>, LoadError> {
+    let list = dir.join("rgb_right.txt");
+    let stereo_rig = matches!(camera.rig(), Rig::Stereo { .. });
+    match (list.exists(), stereo_rig) {
+        (true, true) => Ok(Some(tum::read_list(&list)?)),
+        (false, false) => Ok(None),
+        (true, false) => Err(LoadError::parse(
+            &list,
+            0,
+            "a stereo sequence, but camera.toml describes one camera: add its [right] table (fx, fy, cx, cy, rotation, translation_m) or baseline_m",
+        )),
+        (false, true) => Err(LoadError::parse(
+            &list,
+            0,
+            "missing: camera.toml describes a stereo rig ([right] or baseline_m), so the folder needs rgb_right.txt (the right images, as rgb.txt lists the left)",
+        )),
+    }
+}
+
+/// The frames of a TUM folder: each `rgb.txt` entry with its depth and its right view (when the
+/// input has them) within the tolerance, as TUM's associate.py pairs rgb and depth; the entries
+/// without are dropped and counted (depth, right view). Also whether the input has depth.
+fn tum_entries(dir: &Path, rgb_txt: &Path, stereo: Option<&[tum::ListEntry]>, tol: f64, gt_at: impl Fn(f64) -> Option<Iso3>) -> Result<Listing, LoadError> {
+    let rgb = tum::read_list(rgb_txt)?;
+    let depth_txt = dir.join("depth.txt");
+    let depth = if depth_txt.exists() { Some(tum::read_list(&depth_txt)?) } else { None };
+    let nearest = |list: Option<&[tum::ListEntry]>, t: f64| list.map(|l| nearest_in_time(l, t, tol, |e| e.timestamp_s).map(|i| dir.join(&l[i].file)));
+    let mut entries = Vec::with_capacity(rgb.len());
+    let mut dropped = (0, 0);
+    for r in rgb {
+        let (d, right) = (nearest(depth.as_deref(), r.timestamp_s), nearest(stereo, r.timestamp_s));
+        if d == Some(None) || right == Some(None) {
+            dropped.0 += usize::from(d == Some(None));
+            dropped.1 += usize::from(d != Some(None));
+            continue;
+        }
+        entries.push(Entry { timestamp_s: r.timestamp_s, rgb: dir.join(&r.file), rgb_right: right.flatten(), depth: d.flatten(), gt: gt_at(r.timestamp_s) });
+    }
+    Ok(Listing { entries, has_depth: depth.is_some(), dropped })
+}
+
+/// The frames of a folder and what their association dropped.
+struct Listing {
+    entries: Vec<Entry>,
+    has_depth: bool,
+    /// Frames dropped without depth, without a right view.
+    dropped: (usize, usize),
 }
 
 impl Dataset {
@@ -84,36 +140,21 @@ impl Dataset {
         let ground_truth = if gt_txt.exists() { tum::read_trajectory(&gt_txt)? } else { Vec::new() };
         let gt_at = |t: f64| nearest_in_time(&ground_truth, t, tol, |p| p.timestamp_s).map(|i| ground_truth[i].t_world_cam);
 
-        let (entries, has_depth, dropped) = if rgb_txt.exists() {
-            let rgb = tum::read_list(&rgb_txt)?;
-            let depth_txt = dir.join("depth.txt");
-            let depth = if depth_txt.exists() { Some(tum::read_list(&depth_txt)?) } else { None };
-            let mut entries = Vec::with_capacity(rgb.len());
-            let mut dropped = 0;
-            for r in rgb {
-                let d = match &depth {
-                    None => None,
-                    Some(list) => match nearest_in_time(list, r.timestamp_s, tol, |e| e.timestamp_s) {
-                        Some(i) => Some(dir.join(&list[i].file)),
-                        None => {
-                            dropped += 1;
-                            continue;
-                        }
-                    },
-                };
-                entries.push(Entry { timestamp_s: r.timestamp_s, rgb: dir.join(&r.file), depth: d, gt: gt_at(r.timestamp_s) });
-            }
-            (entries, depth.is_some(), dropped)
+        let stereo = stereo_list(dir, &camera)?;
+        let Listing { entries, has_depth, dropped } = if rgb_txt.exists() {
+            tum_entries(dir, &rgb_txt, stereo.as_deref(), tol, gt_at)?
+        } else if stereo.is_some() {
+            return Err(LoadError::parse(&rgb_txt, 0, "missing: a stereo sequence lists its left images in rgb.txt, as rgb_right.txt lists the right ones"));
         } else {
             let entries = images::list_images(dir)?
                 .into_iter()
                 .enumerate()
                 .map(|(i, rgb)| {
                     let t = i as f64 / input.frame_rate_hz;
-                    Entry { timestamp_s: t, rgb, depth: None, gt: gt_at(t) }
+                    Entry { timestamp_s: t, rgb, rgb_right: None, depth: None, gt: gt_at(t) }
                 })
                 .collect();
-            (entries, false, 0)
+            Listing { entries, has_depth: false, dropped: (0, 0) }
         };
         if entries.is_empty() {
             return Err(LoadError::parse(
@@ -123,7 +164,22 @@ impl Dataset {
             ));
         }
         let (undistortion, out_of_view) = view_maps(&camera, &entries[0].rgb)?;
-        Ok(Self { dir: dir.to_owned(), camera, entries, ground_truth, has_depth, dropped_without_depth: dropped, out_of_view, undistortion })
+        let right_undistortion = match camera.rig() {
+            Rig::Stereo { right, .. } if right.distortion.is_some() => Some(Undistortion::new(&right)),
+            _ => None,
+        };
+        Ok(Self {
+            dir: dir.to_owned(),
+            camera,
+            entries,
+            ground_truth,
+            has_depth,
+            dropped_without_depth: dropped.0,
+            dropped_without_right: dropped.1,
+            out_of_view,
+            undistortion,
+            right_undistortion,
+        })
     }
 
     /// Number of frames.
@@ -149,10 +205,12 @@ impl Dataset {
     /// The rig the stages see: the file's, with the lens undistorted away (the frames are
     /// undistorted as they load).
     pub fn rig(&self) -> Rig {
-        match (self.camera.rig(), &self.undistortion) {
-            (rig, None) => rig,
-            (Rig::Mono(_), Some(u)) => Rig::Mono(u.camera().clone()),
-            (Rig::Stereo { baseline_m, .. }, Some(u)) => Rig::Stereo { left: u.camera().clone(), right: u.camera().clone(), baseline_m },
+        let seen = |c: PinholeCamera, u: &Option<Undistortion>| u.as_ref().map_or(c, |u| u.camera().clone());
+        match self.camera.rig() {
+            Rig::Mono(c) => Rig::Mono(seen(c, &self.undistortion)),
+            Rig::Stereo { left, right, t_right_left } => {
+                Rig::Stereo { left: seen(left, &self.undistortion), right: seen(right, &self.right_undistortion), t_right_left }
+            }
         }
     }
 
@@ -174,6 +232,11 @@ impl Dataset {
     /// RGB frames dropped for lack of a depth image within the tolerance.
     pub fn dropped_without_depth(&self) -> usize {
         self.dropped_without_depth
+    }
+
+    /// Left frames of a stereo sequence dropped for lack of a right image within the tolerance.
+    pub fn dropped_without_right(&self) -> usize {
+        self.dropped_without_right
     }
 
     /// Loads frame `index`.
@@ -205,12 +268,18 @@ impl Dataset {
             Some(u) => (u.rgb(&rgb), depth_m.map(|d| u.depth(&d))),
             None => (rgb, depth_m),
         };
+        let views = match &e.rgb_right {
+            None => Views::Mono(rgb),
+            Some(p) => {
+                let right = images::read_rgb(p, size)?;
+                Views::Stereo { left: rgb, right: self.right_undistortion.as_ref().map_or(right.clone(), |u| u.rgb(&right)) }
+            }
+        };
         let mut masks = Masks::new();
         if let Some(m) = &self.out_of_view {
             masks.insert(MASK_OUT_OF_VIEW, m.clone());
         }
-        let frame =
-            CameraFrame { index, timestamp_s: e.timestamp_s, views: Views::Mono(rgb), depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() };
+        let frame = CameraFrame { index, timestamp_s: e.timestamp_s, views, depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() };
         Ok((frame, warning))
     }
 }

@@ -255,6 +255,7 @@ impl Phantom {
             distortion: spec.distortion.as_ref().map(DistortionSpec::from_model),
             fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
             baseline_m: None,
+            right: None,
             depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model(w as usize)),
         }
     }

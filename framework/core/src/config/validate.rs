@@ -33,7 +33,7 @@ pub fn validate(config: &Config, registry: &Registry, rig: ViewKind, source_name
             problems.push(ConfigProblem::new(
                 key,
                 format!("`{name}` needs a stereo rig, but the input is mono"),
-                "choose a mono depth estimator, or give the input a stereo rig (baseline_m in camera.toml)",
+                "choose a mono depth estimator, or give the input a stereo rig (a [right] table or baseline_m in camera.toml, and rgb_right.txt)",
             ));
         }
     }
