@@ -65,6 +65,10 @@ pub struct SynthArgs {
     /// (each pixel's own ray), `camera.toml` names it, the ground truth is the same.
     #[arg(long)]
     pub distortion: Option<String>,
+    /// A stereo capsule: a second camera this many mm along +x (5 when no value is given), the
+    /// light midway; writes `rgb_right/`, `rgb_right.txt` and `camera.toml`'s `[right]` table.
+    #[arg(long, num_args = 0..=1, default_missing_value = "5", value_name = "BASELINE_MM")]
+    pub stereo: Option<f64>,
     /// Output folder.
     #[arg(long, default_value = "phantom")]
     pub out: PathBuf,
@@ -108,6 +112,7 @@ impl SynthArgs {
         s.light_offset_mm = self.light_offset_mm;
         s.motion_blur = self.motion_blur;
         s.distortion = self.distortion.as_deref().map(parse_lens).transpose()?;
+        s.stereo_baseline_mm = self.stereo;
         Ok(s)
     }
 }

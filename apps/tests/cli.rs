@@ -364,3 +364,21 @@ fn an_unknown_key_does_not_hide_the_unknown_plugin_beside_it() {
     assert!(err.contains("unknown field `depthh`") && err.contains("unknown tracker `nosuch`"), "{err}");
     assert!(err.contains("with --set pipeline.depthh=sensor --set pipeline.tracker=nosuch"), "the source names the --set: {err}");
 }
+
+#[test]
+fn synth_stereo_writes_the_right_views_and_the_rig() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("st");
+    let (ok, _, err) = output(&["synth", "--preset", "2", "--frames", "2", "--size", "naneye", "--stereo", "4", "--out", out.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    let cam = capsule_slam_framework::files::read_camera_file(&out.join("camera.toml")).unwrap();
+    assert_eq!(cam.right.and_then(|r| r.translation_m), Some(vec![-0.004, 0.0, 0.0]));
+    assert_eq!(std::fs::read_to_string(out.join("rgb_right.txt")).unwrap().lines().filter(|l| l.contains("rgb_right/")).count(), 2);
+    // Without a value, 5 mm; a baseline out of range is refused, naming it.
+    let (ok, _, err) = output(&["synth", "--frames", "1", "--size", "naneye", "--stereo", "--out", out.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    let cam = capsule_slam_framework::files::read_camera_file(&out.join("camera.toml")).unwrap();
+    assert_eq!(cam.right.and_then(|r| r.translation_m), Some(vec![-0.005, 0.0, 0.0]));
+    let (ok, _, err) = output(&["synth", "--frames", "1", "--stereo", "90", "--out", out.to_str().unwrap(), "-q"]);
+    assert!(!ok && err.contains("stereo_baseline_mm"), "{err}");
+}

@@ -103,6 +103,10 @@ pub struct PhantomSpec {
     /// The error added to the depth the sensor reads (the exact depth stays the ground truth).
     #[serde(default)]
     pub depth_noise: depth_noise::DepthNoise,
+    /// A stereo rig: a second, identical camera this far along +x of the first (the reference),
+    /// mm, with the light midway between the two (issue 19); none: one camera.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stereo_baseline_mm: Option<f64>,
 }
 
 fn one_walk() -> usize {
@@ -148,6 +152,7 @@ impl PhantomSpec {
             frame_rate_hz: 30.0,
             surface_every: 0,
             depth_noise: depth_noise::DepthNoise::None,
+            stereo_baseline_mm: None,
         }
     }
 
@@ -170,6 +175,11 @@ impl PhantomSpec {
             if !(v.is_finite() && (0.0..=20.0).contains(&v)) {
                 out.push((k, format!("{v} must be in [0, 20]")));
             }
+        }
+        if let Some(b) = self.stereo_baseline_mm
+            && !(b.is_finite() && (0.5..=50.0).contains(&b))
+        {
+            out.push(("stereo_baseline_mm", format!("{b} must be within 0.5–50 mm")));
         }
         if !(self.light_offset_mm.is_finite() && self.light_offset_mm.abs() <= 10.0) {
             out.push(("light_offset_mm", format!("{} must be within ±10 mm", self.light_offset_mm)));
@@ -231,7 +241,8 @@ impl Phantom {
             ref_distance_m: 0.025,
             ambient: 0.02,
             gamma: 2.2,
-            position_m: [spec.light_offset_mm * 1e-3, 0.0, 0.0],
+            // A stereo capsule's light sits midway between its cameras.
+            position_m: [spec.light_offset_mm * 1e-3 + 0.5e-3 * spec.stereo_baseline_mm.unwrap_or(0.0), 0.0, 0.0],
             spot_exponent: 1.0,
             vignetting: vec![-0.3, -0.25],
         };
@@ -255,8 +266,28 @@ impl Phantom {
             distortion: spec.distortion.as_ref().map(DistortionSpec::from_model),
             fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
             baseline_m: None,
-            right: None,
+            // The right camera: the same intrinsics and lens, turned alike, b along +x
+            // (x_right = x_left − [b, 0, 0]).
+            right: spec.stereo_baseline_mm.map(|b| capsule_slam_framework::stereo::RightCameraFile {
+                fx: Some(f),
+                fy: Some(f),
+                cx: Some((f64::from(w) - 1.0) / 2.0),
+                cy: Some((f64::from(h) - 1.0) / 2.0),
+                distortion: spec.distortion.as_ref().map(DistortionSpec::from_model),
+                fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
+                rotation: Some(vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]),
+                translation_m: Some(vec![-b * 1e-3, 0.0, 0.0]),
+            }),
             depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model(w as usize)),
+        }
+    }
+
+    /// Where a view's camera sits in the reference (left) camera's frame: the identity for the
+    /// left, `stereo_baseline_mm` along +x for the right.
+    pub fn t_left_view(&self, view: capsule_slam_framework::stereo::rectify::Side) -> Iso3 {
+        match (view, self.spec.stereo_baseline_mm) {
+            (capsule_slam_framework::stereo::rectify::Side::Right, Some(b)) => Iso3::translation(b * 1e-3, 0.0, 0.0),
+            _ => Iso3::identity(),
         }
     }
 

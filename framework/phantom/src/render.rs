@@ -9,7 +9,9 @@ use rayon::prelude::*;
 use super::{Phantom, SHININESS, SPECULAR_ALBEDO, texture, trajectory};
 use capsule_slam_framework::geometry::Iso3;
 use capsule_slam_framework::image::{DepthMap, GrayF32, Mask, Rgb8};
+use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::map::{Surfel, SurfelSet};
+use capsule_slam_framework::stereo::rectify::Side;
 
 /// Read noise σ (linear units) at noise scale 1.
 const READ_NOISE: f64 = 0.003;
@@ -84,7 +86,7 @@ struct Sample {
 }
 
 impl Phantom {
-    fn shade(&self, u: f64, v: f64, pose: &Iso3, t_s: f64) -> Option<Sample> {
+    fn shade(&self, u: f64, v: f64, pose: &Iso3, t_s: f64, light: &LightModel) -> Option<Sample> {
         let cam = &self.camera;
         if !cam.in_fov(u, v) {
             return None;
@@ -104,16 +106,16 @@ impl Phantom {
         let albedo = texture::albedo(&self.shape.rest_point(tc.phi, tc.theta), self.spec.seed, self.spec.texture);
         // The lens and light fall-off V is a function of the ray (its pinhole pixel): what the
         // stages, which see undistorted frames, divide out with `light.toml`.
-        let vig = self.light.vignetting_at(cam, pin.x, pin.y);
-        let cos_inc = self.light.cos_incidence(&p_cam, &n_cam);
-        let fall = self.light.falloff(&p_cam);
+        let vig = light.vignetting_at(cam, pin.x, pin.y);
+        let cos_inc = light.cos_incidence(&p_cam, &n_cam);
+        let fall = light.falloff(&p_cam);
         let mut diffuse = [0.0; 3];
         for c in 0..3 {
-            diffuse[c] = vig * albedo[c] * (cos_inc * fall + self.light.ambient);
+            diffuse[c] = vig * albedo[c] * (cos_inc * fall + light.ambient);
         }
         // Blinn–Phong: half vector between the directions to the light and to the camera.
         let specular = if cos_inc > 0.0 && self.spec.specular > 0.0 {
-            let h = ((self.light.position() - p_cam).normalize() - p_cam.coords.normalize()).normalize();
+            let h = ((light.position() - p_cam).normalize() - p_cam.coords.normalize()).normalize();
             vig * self.spec.specular * SPECULAR_ALBEDO * fall * n_cam.dot(&h).max(0.0).powf(SHININESS)
         } else {
             0.0
@@ -121,10 +123,19 @@ impl Phantom {
         Some(Sample { depth_m: s * d_cam.z, diffuse, specular })
     }
 
-    /// Renders frame `i`.
+    /// Renders frame `i` (the reference camera's view).
     pub fn render(&self, i: usize) -> RenderedFrame {
+        self.render_view(i, Side::Left)
+    }
+
+    /// Renders frame `i` as one camera of the rig sees it (the right one of a stereo phantom:
+    /// its own pose, and the light where it stands in that camera's frame, so that each camera
+    /// sees its own highlights). The measured depth is the left's only.
+    pub fn render_view(&self, i: usize, view: Side) -> RenderedFrame {
         let (w, h) = (self.camera.width, self.camera.height);
-        let pose = self.pose(i);
+        let t_left_view = self.t_left_view(view);
+        let pose = self.pose(i) * t_left_view;
+        let light = self.light.at(&t_left_view.inverse());
         let t_s = self.time_s(i);
         let n_blur = self.spec.motion_blur.max(1) as usize;
         // Motion blur: sub-frame poses over the last half frame interval before the exposure end.
@@ -132,7 +143,7 @@ impl Phantom {
             .map(|k| {
                 let dt = 0.5 * k as f64 / n_blur as f64;
                 let ti = (i as f64 - dt).max(0.0);
-                (trajectory::pose(&self.shape, &trajectory::waypoint(self.spec.preset, self.spec.path_tau(ti))), ti / self.spec.frame_rate_hz)
+                (trajectory::pose(&self.shape, &trajectory::waypoint(self.spec.preset, self.spec.path_tau(ti))) * t_left_view, ti / self.spec.frame_rate_hz)
             })
             .collect();
         let seed = self.spec.seed;
@@ -144,12 +155,12 @@ impl Phantom {
                 let (mut rgb, mut dif, mut spec, mut depth) = (vec![0u8; w * 3], vec![0u8; w * 3], vec![false; w], vec![0f32; w]);
                 for x in 0..w {
                     let (u, v) = (x as f64, y as f64);
-                    let Some(mut px) = self.shade(u, v, &pose, t_s) else { continue };
+                    let Some(mut px) = self.shade(u, v, &pose, t_s, &light) else { continue };
                     depth[x] = px.depth_m as f32;
                     let lum = 0.2989 * px.diffuse[0] + 0.5870 * px.diffuse[1] + 0.1140 * px.diffuse[2];
                     spec[x] = px.specular > lum;
                     for (bp, bt) in &blur_poses {
-                        let b = self.shade(u, v, bp, *bt).unwrap_or_default();
+                        let b = self.shade(u, v, bp, *bt, &light).unwrap_or_default();
                         for c in 0..3 {
                             px.diffuse[c] += b.diffuse[c];
                         }
@@ -187,7 +198,9 @@ impl Phantom {
             out.specular.data_mut()[y * w..(y + 1) * w].copy_from_slice(&spec);
             out.depth_m.data_mut()[y * w..(y + 1) * w].copy_from_slice(&depth);
         }
-        out.measured_depth_m = self.spec.depth_noise.apply(&out.depth_m, &self.camera, self.spec.seed, i);
+        if view == Side::Left {
+            out.measured_depth_m = self.spec.depth_noise.apply(&out.depth_m, &self.camera, self.spec.seed, i);
+        }
         out
     }
 

@@ -36,7 +36,8 @@ pub const SURFACE_SPACING_M: f64 = 0.0005;
 /// Renders and writes every frame of `phantom` into `dir`; calls `on_frame` after each.
 pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) + Sync)) -> Result<(), LoadError> {
     let clean = (phantom.spec.depth_noise != crate::depth_noise::DepthNoise::None).then_some("depth_clean");
-    for sub in ["rgb", "depth", "diffuse", "specular"].into_iter().chain(clean) {
+    let stereo = phantom.spec.stereo_baseline_mm.is_some();
+    for sub in ["rgb", "depth", "diffuse", "specular"].into_iter().chain(clean).chain(stereo.then_some("rgb_right")) {
         let d = dir.join(sub);
         std::fs::create_dir_all(&d).map_err(|e| LoadError::io(&d, e))?;
     }
@@ -60,6 +61,10 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
         }
         let mask = Gray8::from_fn(f.specular.width(), f.specular.height(), |x, y| [if f.specular.at(x, y) { 255 } else { 0 }]);
         images::write_gray(&dir.join(format!("specular/{i:06}.png")), &mask)?;
+        if stereo {
+            let right = phantom.render_view(i, capsule_slam_framework::stereo::rectify::Side::Right);
+            images::write_rgb(&dir.join(format!("rgb_right/{i:06}.png")), &right.rgb)?;
+        }
         on_frame(i);
         Ok(())
     })?;
@@ -73,6 +78,12 @@ pub fn write_sequence(phantom: &Phantom, dir: &Path, on_frame: &(dyn Fn(usize) +
         "rgb.txt",
         std::iter::once("# timestamp filename".to_owned()).chain(stamps.iter().enumerate().map(|(i, t)| format!("{t:.6} rgb/{i:06}.png"))).collect(),
     )?;
+    if stereo {
+        text(
+            "rgb_right.txt",
+            std::iter::once("# timestamp filename".to_owned()).chain(stamps.iter().enumerate().map(|(i, t)| format!("{t:.6} rgb_right/{i:06}.png"))).collect(),
+        )?;
+    }
     text(
         "depth.txt",
         std::iter::once("# timestamp filename".to_owned()).chain(stamps.iter().enumerate().map(|(i, t)| format!("{t:.6} depth/{i:06}.png"))).collect(),

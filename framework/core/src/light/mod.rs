@@ -112,6 +112,14 @@ impl LightModel {
         out
     }
 
+    /// The same light in the frame of another camera of the rig, `x_view = t_view_ref · x_ref`:
+    /// its position moves; the LED's axis stays along the optical axis, as for a stereo
+    /// capsule's cameras, which look the same way.
+    pub fn at(&self, t_view_ref: &crate::geometry::Iso3) -> Self {
+        let p = t_view_ref * self.position();
+        Self { position_m: [p.x, p.y, p.z], ..self.clone() }
+    }
+
     /// The light position in the camera frame.
     pub fn position(&self) -> Point3<f64> {
         Point3::new(self.position_m[0], self.position_m[1], self.position_m[2])
