@@ -162,8 +162,8 @@ fn a_revisit_reactivates_the_same_surfels_on_both() {
     };
     let (g, c) = forth_and_back(p.clone());
     let (sg, sc) = (g.snapshot().unwrap().surfels, c.snapshot().unwrap().surfels);
-    // Measured: 99.99 %; a few associations on a gate flip with the last bits of f32 (the
-    // counts then differ by a handful).
+    // A few associations that sit on a gate flip with the last bits of f32, so the counts
+    // may differ by a handful.
     assert!(agreement(&sg, &sc) > 0.999, "only {:.2} % of the surfels agree", 100.0 * agreement(&sg, &sc));
     let (a, b) = (g.stats(), c.stats());
     assert!(a.total.abs_diff(b.total) * 1000 <= b.total && a.active.abs_diff(b.active) * 1000 <= b.active, "gpu {a:?}, cpu {b:?}");
