@@ -115,16 +115,7 @@ impl CameraFile {
 
     /// The camera described by this file (call [`CameraFile::problems`] first).
     pub fn camera(&self) -> PinholeCamera {
-        PinholeCamera {
-            width: self.width as usize,
-            height: self.height as usize,
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            distortion: self.distortion.as_ref().and_then(DistortionSpec::model).filter(|d| !d.is_identity()),
-            fov_radius_px: self.fov_radius_px,
-        }
+        lens_camera((self.width as usize, self.height as usize), [self.fx, self.fy, self.cx, self.cy], self.distortion.as_ref(), self.fov_radius_px)
     }
 
     /// The rig: stereo with a `[right]` table (its own intrinsics, lens and extrinsics) or a
@@ -144,11 +135,16 @@ impl CameraFile {
 /// The right camera of a `[right]` table, with the left's image size (`None` while a field is
 /// missing or wrong: [`CameraFile::problems`] says which).
 fn right_camera(r: &RightCameraFile, width: usize, height: usize) -> Option<PinholeCamera> {
-    let (fx, fy, cx, cy) = (r.fx?, r.fy?, r.cx?, r.cy?);
-    let mut c = PinholeCamera::new(width, height, fx, fy, cx, cy);
-    c.distortion = r.distortion.as_ref().and_then(DistortionSpec::model).filter(|d| !d.is_identity());
-    c.fov_radius_px = r.fov_radius_px;
-    Some(c)
+    Some(lens_camera((width, height), [r.fx?, r.fy?, r.cx?, r.cy?], r.distortion.as_ref(), r.fov_radius_px))
+}
+
+/// A camera of `camera.toml`: its size, `[fx, fy, cx, cy]`, its lens (none when the model is
+/// the identity) and its field of view.
+fn lens_camera(size: (usize, usize), k: [f64; 4], distortion: Option<&DistortionSpec>, fov_radius_px: Option<f64>) -> PinholeCamera {
+    let mut c = PinholeCamera::new(size.0, size.1, k[0], k[1], k[2], k[3]);
+    c.distortion = distortion.and_then(DistortionSpec::model).filter(|d| !d.is_identity());
+    c.fov_radius_px = fov_radius_px;
+    c
 }
 
 /// A pinhole camera, with the lens in front of it. The stages see undistorted images: an input

@@ -94,9 +94,12 @@ fn tum_entries(dir: &Path, rgb_txt: &Path, stereo: Option<&[tum::ListEntry]>, to
     let mut dropped = (0, 0);
     for r in rgb {
         let (d, right) = (nearest(depth.as_deref(), r.timestamp_s), nearest(stereo, r.timestamp_s));
-        if d == Some(None) || right == Some(None) {
-            dropped.0 += usize::from(d == Some(None));
-            dropped.1 += usize::from(d != Some(None));
+        if d == Some(None) {
+            dropped.0 += 1;
+            continue;
+        }
+        if right == Some(None) {
+            dropped.1 += 1;
             continue;
         }
         entries.push(Entry { timestamp_s: r.timestamp_s, rgb: dir.join(&r.file), rgb_right: right.flatten(), depth: d.flatten(), gt: gt_at(r.timestamp_s) });
@@ -272,7 +275,11 @@ impl Dataset {
             None => Views::Mono(rgb),
             Some(p) => {
                 let right = images::read_rgb(p, size)?;
-                Views::Stereo { left: rgb, right: self.right_undistortion.as_ref().map_or(right.clone(), |u| u.rgb(&right)) }
+                let right = match &self.right_undistortion {
+                    Some(u) => u.rgb(&right),
+                    None => right,
+                };
+                Views::Stereo { left: rgb, right }
             }
         };
         let mut masks = Masks::new();

@@ -255,7 +255,7 @@ impl Phantom {
     pub fn camera_file_for(spec: &PhantomSpec) -> CameraFile {
         let (w, h) = spec.size.size();
         let f = 0.5 * f64::from(w.min(h));
-        CameraFile {
+        let mut file = CameraFile {
             width: w,
             height: h,
             fx: f,
@@ -266,27 +266,31 @@ impl Phantom {
             distortion: spec.distortion.as_ref().map(DistortionSpec::from_model),
             fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
             baseline_m: None,
-            // The right camera: the same intrinsics and lens, turned alike, b along +x
-            // (x_right = x_left − [b, 0, 0]).
-            right: spec.stereo_baseline_mm.map(|b| capsule_slam_framework::stereo::RightCameraFile {
-                fx: Some(f),
-                fy: Some(f),
-                cx: Some((f64::from(w) - 1.0) / 2.0),
-                cy: Some((f64::from(h) - 1.0) / 2.0),
-                distortion: spec.distortion.as_ref().map(DistortionSpec::from_model),
-                fov_radius_px: (w == h).then_some(0.47 * f64::from(w)),
-                rotation: Some(vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]),
-                translation_m: Some(vec![-b * 1e-3, 0.0, 0.0]),
-            }),
+            right: None,
             depth_noise: (spec.depth_noise != depth_noise::DepthNoise::None).then(|| spec.depth_noise.model(w as usize)),
-        }
+        };
+        // The right camera: the left's intrinsics and lens, turned alike, b along +x.
+        file.right = spec.stereo_baseline_mm.map(|b| {
+            let t = capsule_slam_framework::stereo::rectified_t_right_left(b * 1e-3).translation.vector;
+            capsule_slam_framework::stereo::RightCameraFile {
+                fx: Some(file.fx),
+                fy: Some(file.fy),
+                cx: Some(file.cx),
+                cy: Some(file.cy),
+                distortion: file.distortion.clone(),
+                fov_radius_px: file.fov_radius_px,
+                rotation: Some(vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]),
+                translation_m: Some(t.iter().copied().collect()),
+            }
+        });
+        file
     }
 
     /// Where a view's camera sits in the reference (left) camera's frame: the identity for the
     /// left, `stereo_baseline_mm` along +x for the right.
     pub fn t_left_view(&self, view: capsule_slam_framework::stereo::rectify::Side) -> Iso3 {
         match (view, self.spec.stereo_baseline_mm) {
-            (capsule_slam_framework::stereo::rectify::Side::Right, Some(b)) => Iso3::translation(b * 1e-3, 0.0, 0.0),
+            (capsule_slam_framework::stereo::rectify::Side::Right, Some(b)) => capsule_slam_framework::stereo::rectified_t_right_left(b * 1e-3).inverse(),
             _ => Iso3::identity(),
         }
     }

@@ -61,12 +61,10 @@ pub struct CounterSums(BTreeMap<String, (f64, usize)>);
 impl CounterSums {
     /// Adds one frame's counters.
     pub fn add(&mut self, r: &FrameRecord) {
-        for (plugin, rep) in &r.reports {
-            for (k, v) in &rep.counters {
-                let e = self.0.entry(format!("{plugin}.{k}")).or_insert((0.0, 0));
-                e.0 += v;
-                e.1 += 1;
-            }
+        for (k, v) in counters_of(r) {
+            let e = self.0.entry(k).or_insert((0.0, 0));
+            e.0 += v;
+            e.1 += 1;
         }
     }
 }

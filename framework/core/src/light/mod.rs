@@ -53,6 +53,26 @@ impl LightModel {
         Self { gain: 1.0, ref_distance_m: 0.025, ambient: 0.02, gamma: 2.2, position_m: [0.0; 3], spot_exponent: 1.0, vignetting: vec![-0.5, 0.0] }
     }
 
+    /// The model in a few words, for messages: where the light is, its encoding, LED, ambient
+    /// and vignetting (e.g. "at the lens, γ 2.2, spot exponent 1, ambient 0.02, V = 1 − 0.5 r²").
+    pub fn describe(&self) -> String {
+        let at = if self.position_m.iter().all(|v| *v == 0.0) {
+            "at the lens".to_owned()
+        } else {
+            let [x, y, z] = self.position_m.map(|v| v * 1e3);
+            format!("at ({x:.1}, {y:.1}, {z:.1}) mm from the lens")
+        };
+        let powers = ["r²", "r⁴", "r⁶"];
+        let v: String = self
+            .vignetting
+            .iter()
+            .zip(powers)
+            .filter(|(c, _)| **c != 0.0)
+            .map(|(c, p)| format!(" {} {} {p}", if *c < 0.0 { "−" } else { "+" }, c.abs()))
+            .collect();
+        format!("{at}, γ {}, spot exponent {}, ambient {}, V = 1{v}", self.gamma, self.spot_exponent, self.ambient)
+    }
+
     /// Every invalid field as `(key, message)`.
     pub fn problems(&self) -> Vec<(&'static str, String)> {
         let mut out = Vec::new();
@@ -191,6 +211,13 @@ impl LightModel {
 mod tests {
     use super::*;
     use proptest::prelude::{Just, prop_oneof};
+
+    #[test]
+    fn a_model_describes_itself_from_its_own_values() {
+        assert_eq!(LightModel::uncalibrated().describe(), "at the lens, γ 2.2, spot exponent 1, ambient 0.02, V = 1 − 0.5 r²");
+        let beside = LightModel { position_m: [0.0025, 0.0, 0.0], vignetting: vec![-0.3, -0.25], ..LightModel::default() };
+        assert_eq!(beside.describe(), "at (2.5, 0.0, 0.0) mm from the lens, γ 2.2, spot exponent 0, ambient 0.02, V = 1 − 0.3 r² − 0.25 r⁴");
+    }
 
     #[test]
     fn vignetting_that_passes_no_light_inside_the_image_is_a_problem() {

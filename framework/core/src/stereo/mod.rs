@@ -9,7 +9,7 @@
 
 pub mod rectify;
 
-use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigProblem;
@@ -117,10 +117,10 @@ pub fn rectified_t_right_left(baseline_m: f64) -> Iso3 {
     Iso3::translation(-baseline_m, 0.0, 0.0)
 }
 
-/// The baseline of a rig's extrinsics: the distance between the two optical centres, metres.
+/// The baseline of a rig's extrinsics: the distance between the two optical centres, metres
+/// (the right centre in the left frame is `−Rᵀ t`, as long as `t`).
 pub fn baseline_m(t_right_left: &Iso3) -> f64 {
-    let centre_of_right_in_left: Vector3<f64> = -(t_right_left.rotation.inverse() * t_right_left.translation.vector);
-    centre_of_right_in_left.norm()
+    t_right_left.translation.vector.norm()
 }
 
 #[cfg(test)]

@@ -100,7 +100,7 @@ impl Plugin for NearLightSfs {
             s.pending_warning = Some(format!(
                 "no {}: the light is assumed ({}), so the depth, the map and the trajectory have an unknown scale (figures are Sim(3)-aligned); `capsule-slam calibrate-light` fits the capsule's light.toml",
                 path.display(),
-                "at the lens, γ 2.2, spot exponent 1, ambient 0.02, V = 1 − 0.5 r²"
+                s.light.describe()
             ));
             return Ok(s);
         }

@@ -145,10 +145,13 @@ impl Plugin for Vignetting {
             // Without a calibration, a depth estimated from the shading must see the fall-off
             // its own assumed light divides (`near-light-sfs`), not one learnt from that depth.
             Source::Auto if monocular => {
-                let mut v = Self::new(params, FalloffSource::Light(LightModel::uncalibrated()));
-                v.pending_warning = Some(
-                    "vignetting: no light.toml or vignetting.toml in the input folder: the fall-off of the assumed light is divided (V = 1 − 0.5 r², spot exponent 1; `capsule-slam calibrate-light` or `calibrate-vignetting` measure the capsule's)".into(),
+                let light = LightModel::uncalibrated();
+                let why = format!(
+                    "no light.toml or vignetting.toml in the input folder: the fall-off of the assumed light is divided ({}; `capsule-slam calibrate-light` or `calibrate-vignetting` measure the capsule's)",
+                    light.describe()
                 );
+                let mut v = Self::new(params, FalloffSource::Light(light));
+                v.pending_warning = Some(why);
                 return Ok(v);
             }
             Source::Auto => Source::Sequence,

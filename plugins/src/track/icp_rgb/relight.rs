@@ -131,11 +131,13 @@ pub fn load_light(light_file: &str, env: &BuildEnv) -> Result<(Option<Lighting>,
     }
     let path = env.input_file(light_file);
     if !path.exists() && env.depth_source == Some(capsule_slam_framework::frame::DepthSource::Estimated) {
+        let light = LightModel::uncalibrated();
         let why = format!(
-            "no {} (light_file): the photometric term is relit by the assumed light of an uncalibrated capsule (at the lens, spot exponent 1; `capsule-slam calibrate-light` fits the capsule's light.toml; light_file = \"\" compares unlit)",
-            path.display()
+            "no {} (light_file): the photometric term is relit by the assumed light of an uncalibrated capsule ({}; `capsule-slam calibrate-light` fits the capsule's light.toml; light_file = \"\" compares unlit)",
+            path.display(),
+            light.describe()
         );
-        return Ok((Some(Lighting::new(LightModel::uncalibrated())), Some(why)));
+        return Ok((Some(Lighting::new(light)), Some(why)));
     }
     if !path.exists() {
         let why = format!(
