@@ -40,8 +40,11 @@ pub struct MatchSettings {
     pub search_px: usize,
     /// σ of the Gaussian smoothing a level's disparities into the next level's prior, pixels.
     pub smooth_px: f32,
-    /// Full-resolution refinements with both directions checked (at least 1).
+    /// Refinements at `check_level` with both directions checked (at least 1: the descent).
     pub passes: usize,
+    /// The level of the checked passes (0: full resolution; 1: half, then one checked
+    /// refinement per level down).
+    pub check_level: usize,
     /// σ of the smoothing that fills the holes of a checked pass for the next, pixels.
     pub fill_px: f32,
     /// Connected regions (within 1 px of disparity) smaller than this are removed at the end.
@@ -53,21 +56,45 @@ pub fn match_pair(left: &Plane, right: &Plane, s: &MatchSettings) -> Vec<f32> {
     let w = left.width;
     let mirrored_left = Plane { gray: mirror(&right.gray, w), invalid: mirror(&right.invalid, w), ..right.clone() };
     let mirrored_right = Plane { gray: mirror(&left.gray, w), invalid: mirror(&left.invalid, w), ..left.clone() };
-    let (mut dl, dr) = rayon::join(|| one_way(left, right, s), || one_way(&mirrored_left, &mirrored_right, s));
-    let mut dr = mirror(&dr, w);
-    for _ in 1..s.passes.max(1) {
-        let mut prior_l = pyramid::smooth(&checked(&dl, &dr, w, s.sgm.lr_max_px, 1.0), w, left.height, s.fill_px);
-        let mut prior_r = mirror(&pyramid::smooth(&checked(&dr, &dl, w, s.sgm.lr_max_px, -1.0), w, left.height, s.fill_px), w);
-        mask(&mut prior_l, &left.invalid);
-        mask(&mut prior_r, &mirrored_left.invalid);
-        let (a, b) = rayon::join(|| refine(left, right, &prior_l, s, s.noise_levels), || refine(&mirrored_left, &mirrored_right, &prior_r, s, s.noise_levels));
-        (dl, dr) = (a, mirror(&b, w));
+    let (pl, pr) = rayon::join(|| pyramid_of(left, right, s.levels), || pyramid_of(&mirrored_left, &mirrored_right, s.levels));
+    let cl = s.check_level.min(s.levels);
+    let (mut dl, mut dr) = rayon::join(|| one_way(&pl, cl, s), || one_way(&pr, cl, s));
+    // Checked passes at the check level, then down to the full resolution with both directions.
+    for pass in 1..s.passes.max(1) + cl {
+        let level = if pass < s.passes.max(1) { cl } else { cl - (pass - s.passes.max(1)) - 1 };
+        let up = if pass < s.passes.max(1) { 0 } else { 1 };
+        let (l_here, l_from) = (&pl[level].0, &pl[level + up].0);
+        let (lw, lh, fw, fh) = (l_here.width, l_here.height, l_from.width, l_from.height);
+        let fill = s.fill_px / (1usize << (level + up)) as f32;
+        // The right direction's disparities in the right view's own frame (unmirrored).
+        let dr_right = mirror(&dr, fw);
+        let prior = |a: &[f32], b: &[f32], sign: f32| {
+            let f = pyramid::smooth(&checked(a, b, fw, s.sgm.lr_max_px, sign), fw, fh, fill);
+            if up == 1 { pyramid::smooth(&pyramid::double(&f, fw, fh, lw, lh), lw, lh, 1.0) } else { f }
+        };
+        let mut prior_l = prior(&dl, &dr_right, 1.0);
+        let mut prior_r = mirror(&prior(&dr_right, &dl, -1.0), lw);
+        mask(&mut prior_l, &pl[level].0.invalid);
+        mask(&mut prior_r, &pr[level].0.invalid);
+        let noise = s.noise_levels / (1usize << level) as f32;
+        (dl, dr) = rayon::join(|| refine(&pl[level].0, &pl[level].1, &prior_l, s, noise), || refine(&pr[level].0, &pr[level].1, &prior_r, s, noise));
     }
-    let mut out = checked(&dl, &dr, w, s.sgm.lr_max_px, 1.0);
+    let mut out = checked(&dl, &mirror(&dr, w), w, s.sgm.lr_max_px, 1.0);
     let (lo, hi) = (s.sgm.d_min as f32, s.sgm.d_max as f32);
     out.iter_mut().filter(|d| **d < lo || **d > hi).for_each(|d| *d = INVALID);
     sgm::remove_speckles(&mut out, w, left.height, s.speckle_px);
     out
+}
+
+/// The views halved `levels` times: index 0 is the full resolution.
+fn pyramid_of(left: &Plane, right: &Plane, levels: usize) -> Vec<(Plane, Plane)> {
+    let mut pyr = vec![(left.clone(), right.clone())];
+    for _ in 0..levels {
+        let (l, r) = &pyr[pyr.len() - 1];
+        let next = (pyramid::halve(l), pyramid::halve(r));
+        pyr.push(next);
+    }
+    pyr
 }
 
 /// The disparities of `a` that the other direction's `b` confirms within `tol` pixels: `a` is
@@ -90,22 +117,17 @@ fn mask(d: &mut [f32], invalid: &[bool]) {
     d.iter_mut().zip(invalid).filter(|(_, i)| **i).for_each(|(d, _)| *d = INVALID);
 }
 
-/// One direction down the pyramid: the top level over the whole range, then every level
-/// refined around the one above.
-fn one_way(left: &Plane, right: &Plane, s: &MatchSettings) -> Vec<f32> {
-    let mut pyr = vec![(left.clone(), right.clone())];
-    for _ in 0..s.levels {
-        let (l, r) = &pyr[pyr.len() - 1];
-        let next = (pyramid::halve(l), pyramid::halve(r));
-        pyr.push(next);
-    }
-    let scale = 1usize << s.levels;
-    let (tl, tr) = &pyr[s.levels];
+/// One direction down the pyramid `pyr` to level `stop`: the top level over the whole range,
+/// then every level refined around the one above.
+fn one_way(pyr: &[(Plane, Plane)], stop: usize, s: &MatchSettings) -> Vec<f32> {
+    let levels = pyr.len() - 1;
+    let scale = 1usize << levels;
+    let (tl, tr) = &pyr[levels];
     let top = SgmSettings { d_min: s.sgm.d_min / scale, d_max: s.sgm.d_max.div_ceil(scale), ..s.sgm };
     let volume = zncc::costs(tl, tr, top.d_min, top.d_max, s.top_radius, s.noise_levels / scale as f32);
     let total = sgm::aggregate(&volume, tl.width, tl.height, &top);
     let mut d = sgm::disparities(&total, &tl.invalid, &tr.invalid, tl.width, tl.height, &top);
-    for level in (0..s.levels).rev() {
+    for level in (stop..levels).rev() {
         let (up, (l, r)) = (&pyr[level + 1].0, &pyr[level]);
         let coarse = pyramid::smooth(&d, up.width, up.height, s.smooth_px);
         let mut prior = pyramid::smooth(&pyramid::double(&coarse, up.width, up.height, l.width, l.height), l.width, l.height, 1.0);

@@ -39,7 +39,7 @@ capsule_slam_framework::plugin_params! {
         /// Farthest depth searched (the smallest disparity).
         pub max_depth_m: f64 = 0.25; unit = "m"; range = 0.001..=100.0;
         /// Pyramid levels above the full resolution (the first match is at 1/2^levels).
-        pub levels: u32 = 3; unit = "-"; range = 0.0..=5.0;
+        pub levels: u32 = 2; unit = "-"; range = 0.0..=5.0;
         /// ZNCC window radius at the top level, pixels of that level.
         pub top_radius: u32 = 3; unit = "px"; range = 1.0..=15.0;
         /// ZNCC window radius of every refinement, pixels of its level: wide, because the warp
@@ -54,9 +54,13 @@ capsule_slam_framework::plugin_params! {
         pub smooth_px: f64 = 2.0; unit = "px"; range = 0.5..=20.0;
         /// Full-resolution refinements with both directions checked; each one after the first
         /// starts from the checked disparities, their holes filled (`fill_px`).
-        pub passes: u32 = 3; unit = "-"; range = 1.0..=10.0;
-        /// σ of the smoothing that fills a checked pass's holes for the next.
-        pub fill_px: f64 = 6.0; unit = "px"; range = 0.5..=30.0;
+        pub passes: u32 = 2; unit = "-"; range = 1.0..=10.0;
+        /// The pyramid level of the checked passes (0: full resolution; 1: half, then one
+        /// checked refinement per level down: about half the time).
+        pub check_level: u32 = 1; unit = "-"; range = 0.0..=5.0;
+        /// σ of the smoothing that fills a checked pass's holes for the next, full-resolution
+        /// pixels.
+        pub fill_px: f64 = 8.0; unit = "px"; range = 0.5..=30.0;
         /// SGM penalty of a one-pixel disparity step, in units of the cost `1 − ρ`
         /// (Hirschmüller's P1).
         pub p1: f64 = 0.0625; unit = "1-rho"; range = 0.0..=2.0;
@@ -101,7 +105,7 @@ impl Plugin for StereoSgm {
 
 impl StereoSgm {
     /// The matcher's settings at this rig: the disparity range of the depth range.
-    fn settings(&self) -> MatchSettings {
+    pub fn settings(&self) -> MatchSettings {
         let (p, r) = (&self.params, &self.rectifier.rect);
         let fb = r.camera.fx * r.baseline_m;
         let d_max = ((fb / p.min_depth_m).ceil() as usize).min(r.camera.width.saturating_sub(1)).max(1);
@@ -124,6 +128,7 @@ impl StereoSgm {
             search_px: p.search_px as usize,
             smooth_px: p.smooth_px as f32,
             passes: p.passes as usize,
+            check_level: p.check_level as usize,
             fill_px: p.fill_px as f32,
             speckle_px: p.speckle_px as usize,
         }

@@ -64,54 +64,49 @@ fn directions(paths: usize) -> Vec<(isize, isize)> {
 }
 
 /// The sum of the path costs over every direction, `w × h × n` (saturating u16: 8 paths of at
-/// most the worst cost plus P2 each).
+/// most the worst cost plus P2 each). The directions run in parallel, each one sequentially
+/// into its own volume.
 pub fn aggregate(c: &[u16], w: usize, h: usize, s: &SgmSettings) -> Vec<u16> {
-    let n = s.d_max - s.d_min + 1;
-    let mut total = vec![0u16; w * h * n];
-    for (dx, dy) in directions(s.paths) {
-        let l = path_costs(c, w, h, n, (dx, dy), s);
-        total.par_iter_mut().zip(l.par_iter()).for_each(|(t, v)| *t = t.saturating_add(*v));
-    }
-    total
+    let n = s.count();
+    directions(s.paths)
+        .into_par_iter()
+        .map(|dir| path_costs(c, w, h, n, dir, s))
+        .reduce_with(|mut a, b| {
+            a.iter_mut().zip(&b).for_each(|(t, v)| *t = t.saturating_add(*v));
+            a
+        })
+        .unwrap_or_else(|| vec![0; w * h * n])
 }
 
 /// The path costs along one direction: the pixels are visited so that each one's predecessor
-/// `p − r` comes first (row by row, or column by column for a horizontal direction; the rows of
-/// a horizontal path run in parallel).
+/// `p − r` comes first (rows in the path's vertical order, each row in its horizontal order).
 fn path_costs(c: &[u16], w: usize, h: usize, n: usize, (dx, dy): (isize, isize), s: &SgmSettings) -> Vec<u16> {
     let mut l = vec![0u16; w * h * n];
     let xs: Vec<usize> = if dx >= 0 { (0..w).collect() } else { (0..w).rev().collect() };
-    if dy == 0 {
-        l.par_chunks_mut(w * n).enumerate().for_each(|(y, row)| {
-            let mut prev = vec![0u16; n];
-            for (i, &x) in xs.iter().enumerate() {
-                let cell = &c[(y * w + x) * n..(y * w + x + 1) * n];
-                let out = &mut row[x * n..(x + 1) * n];
-                if i == 0 {
-                    out.iter_mut().zip(cell).for_each(|(o, v)| *o = *v);
-                } else {
-                    step(cell, &prev, out, s.p1, s.p2);
-                }
-                prev.copy_from_slice(out);
-            }
-        });
-        return l;
-    }
-    let ys: Vec<usize> = if dy > 0 { (0..h).collect() } else { (0..h).rev().collect() };
+    let ys: Vec<usize> = if dy >= 0 { (0..h).collect() } else { (0..h).rev().collect() };
+    let mut prev_row = vec![0u16; w * n];
+    let mut row = vec![0u16; w * n];
+    let mut last = vec![0u16; n];
     for (j, &y) in ys.iter().enumerate() {
-        let prev_y = (j > 0).then(|| ys[j - 1]);
-        let (before, rest) = l.split_at_mut(y * w * n);
-        let (row, after) = rest.split_at_mut(w * n);
-        let prev_row: Option<&[u16]> =
-            prev_y.map(|py| if py < y { &before[py * w * n..(py + 1) * w * n] } else { &after[(py - y - 1) * w * n..(py - y) * w * n] });
-        row.par_chunks_mut(n).enumerate().for_each(|(x, out)| {
+        for (i, &x) in xs.iter().enumerate() {
             let cell = &c[(y * w + x) * n..(y * w + x + 1) * n];
+            let out = &mut row[x * n..(x + 1) * n];
+            // The predecessor (x − dx, y − dy): the pixel visited just before (dy = 0) or one
+            // in the row before.
             let px = x as isize - dx;
-            match prev_row {
-                Some(prev) if px >= 0 && (px as usize) < w => step(cell, &prev[px as usize * n..(px as usize + 1) * n], out, s.p1, s.p2),
-                _ => out.iter_mut().zip(cell).for_each(|(o, v)| *o = *v),
+            let prev: Option<&[u16]> = if dy == 0 {
+                (i > 0).then_some(&last[..])
+            } else {
+                (j > 0 && px >= 0 && (px as usize) < w).then(|| &prev_row[px as usize * n..(px as usize + 1) * n])
+            };
+            match prev {
+                Some(prev) => step(cell, prev, out, s.p1, s.p2),
+                None => out.copy_from_slice(cell),
             }
-        });
+            last.copy_from_slice(out);
+        }
+        l[y * w * n..(y + 1) * w * n].copy_from_slice(&row);
+        std::mem::swap(&mut prev_row, &mut row);
     }
     l
 }

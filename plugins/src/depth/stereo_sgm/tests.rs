@@ -59,7 +59,9 @@ fn a_phantom_pair_gives_its_depth() {
     let (depth, sigma) = sgm.depth(&f).unwrap();
     let (abs_rel, bad, coverage) = score(&depth, f.depth_m.as_ref().unwrap(), &rig);
     eprintln!("AbsRel {abs_rel:.4}, bad > 1 px {bad:.4}, coverage {coverage:.3}");
-    assert!(abs_rel < 0.02 && bad < 0.05 && coverage > 0.75, "AbsRel {abs_rel:.4}, bad {bad:.4}, coverage {coverage:.3}");
+    // Measured 0.0148, 0.036, 0.785; the geometry leaves about 13 % of the field of view seen by
+    // the left camera alone.
+    assert!(abs_rel < 0.02 && bad < 0.05 && coverage > 0.7, "AbsRel {abs_rel:.4}, bad {bad:.4}, coverage {coverage:.3}");
     // σ grows with the square of the depth.
     let (x, y) = (160, 160);
     let z = f64::from(depth.at(x, y));
@@ -72,4 +74,107 @@ fn a_mono_rig_is_refused_with_the_fix() {
     let rig = Phantom::camera_file_for(&ph.spec).rig();
     let err = StereoSgm::build(StereoSgmParams::default(), &BuildEnv::new(rig, None)).err().unwrap().to_string();
     assert!(err.contains("[right]") && err.contains("rgb_right.txt"), "{err}");
+}
+
+
+/// A smooth texture with detail at several scales (analytic, so any sub-pixel shift is exact).
+fn texture(x: f64, y: f64) -> f32 {
+    let t = 0.5 * (0.31 * x + 0.17 * y).sin() + 0.35 * (0.11 * x - 0.23 * y + 1.0).sin() + 0.25 * (0.53 * x + 0.41 * y + 2.0).sin();
+    (120.0 + 40.0 * t) as f32
+}
+
+fn plane_of(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> super::zncc::Plane {
+    super::zncc::Plane { gray: (0..w * h).map(|p| f(p % w, p / w)).collect(), invalid: vec![false; w * h], width: w, height: h }
+}
+
+fn settings() -> super::matcher::MatchSettings {
+    let (ph, rig) = stereo_phantom(1);
+    drop(ph);
+    let sgm = StereoSgm::build(StereoSgmParams::default(), &BuildEnv::new(rig, None)).unwrap();
+    sgm.settings()
+}
+
+#[test]
+fn a_fronto_parallel_plane_gives_its_exact_disparity() {
+    let (w, h, d) = (160, 120, 12.3);
+    let left = plane_of(w, h, |x, y| texture(x as f64, y as f64));
+    let right = plane_of(w, h, |x, y| texture(x as f64 + d, y as f64));
+    let disp = super::matcher::match_pair(&left, &right, &settings());
+    let mut err: Vec<f64> = Vec::new();
+    let (mut seen, mut matched) = (0, 0);
+    for y in 12..h - 12 {
+        for x in 30..w - 12 {
+            seen += 1;
+            let e = disp[y * w + x];
+            if e > 0.0 {
+                matched += 1;
+                err.push((f64::from(e) - d).abs());
+            }
+        }
+    }
+    err.sort_by(f64::total_cmp);
+    let (median, p95) = (err[err.len() / 2], err[err.len() * 95 / 100]);
+    assert!(matched as f64 > 0.9 * seen as f64, "{matched} of {seen} matched");
+    assert!(median < 0.05 && p95 < 0.2, "median {median:.3} px, p95 {p95:.3} px");
+}
+
+#[test]
+fn the_left_right_check_removes_an_occluded_band() {
+    // A strip (x in [80, 150)) 20 px of disparity in front of a wall at 8 px: the 12 columns
+    // left of the strip show wall the right camera cannot see. (The coarse-to-fine matcher
+    // loses a strip much narrower than its top level's window: 30 px here.)
+    let (w, h, d_wall, d_strip, a, b) = (220, 100, 8.0, 20.0, 80usize, 150usize);
+    let strip = |x: f64, y: f64| texture(1.7 * x + 300.0, 1.3 * y + 50.0);
+    let left = plane_of(w, h, |x, y| if (a..b).contains(&x) { strip(x as f64, y as f64) } else { texture(x as f64, y as f64) });
+    let right = plane_of(w, h, |x, y| {
+        let xs = x as f64 + d_strip;
+        if xs >= a as f64 && xs < b as f64 { strip(xs, y as f64) } else { texture(x as f64 + d_wall, y as f64) }
+    });
+    let band = (a - (d_strip - d_wall) as usize)..a;
+    let rows = 15..h - 15;
+    let in_band = rows.len() * band.len();
+    // (band pixels left empty, band pixels given another disparity than the wall's)
+    let band_stats = |disp: &[f32]| {
+        let px = rows.clone().flat_map(|y| band.clone().map(move |x| disp[y * w + x]));
+        px.fold((0, 0), |(e, wr), d| (e + usize::from(d <= 0.0), wr + usize::from(d > 0.0 && (f64::from(d) - d_wall).abs() > 1.0)))
+    };
+    // SGM over the whole range at full resolution: its left–right check is what empties the band.
+    let sgm_only = |lr_max_px: f32| {
+        let s = super::sgm::SgmSettings { d_min: 0, d_max: 30, lr_max_px, ..settings().sgm };
+        let volume = super::zncc::costs(&left, &right, s.d_min, s.d_max, 5, 2.0);
+        super::sgm::disparities(&super::sgm::aggregate(&volume, w, h, &s), &left.invalid, &right.invalid, w, h, &s)
+    };
+    let (_, wrong_unchecked) = band_stats(&sgm_only(1000.0));
+    let (_, wrong_checked) = band_stats(&sgm_only(1.0));
+    assert!(wrong_unchecked as f64 > 0.5 * in_band as f64, "without the check {wrong_unchecked} of {in_band} band pixels are wrong");
+    assert!(wrong_checked as f64 <= 0.1 * in_band as f64, "with the check {wrong_checked} of {in_band} band pixels are wrong");
+    // The whole matcher (its refinements also reject what the other direction cannot confirm).
+    let disp = super::matcher::match_pair(&left, &right, &settings());
+    let (empty, wrong) = band_stats(&disp);
+    assert!(wrong as f64 <= 0.05 * in_band as f64, "{wrong} of {in_band} band pixels matched to something else");
+    assert!(empty as f64 > 0.8 * in_band as f64, "{empty} of {in_band} band pixels empty");
+    // Away from the edges both surfaces are found.
+    let at = |x: usize| rows.clone().map(|y| disp[y * w + x]).filter(|d| *d > 0.0).map(f64::from).sum::<f64>() / rows.len() as f64;
+    assert!((at(115) - d_strip).abs() < 0.3 && (at(185) - d_wall).abs() < 0.3, "strip {:.2}, wall {:.2}", at(115), at(185));
+}
+
+#[test]
+fn masked_pixels_in_either_view_get_no_depth() {
+    let (w, h, d) = (160, 120, 10.0);
+    let mut left = plane_of(w, h, |x, y| texture(x as f64, y as f64));
+    let mut right = plane_of(w, h, |x, y| texture(x as f64 + d, y as f64));
+    // A masked disc in the left view, and one in the right view whose left pixels are at +d.
+    let disc = |x: usize, y: usize, cx: f64, cy: f64| (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2) < 100.0;
+    (0..w * h).for_each(|p| left.invalid[p] = disc(p % w, p / w, 60.0, 60.0));
+    (0..w * h).for_each(|p| right.invalid[p] = disc(p % w, p / w, 110.0, 60.0));
+    let disp = super::matcher::match_pair(&left, &right, &settings());
+    for y in 0..h {
+        for x in 0..w {
+            if disc(x, y, 60.0, 60.0) || disc(x, y, 110.0 + d, 60.0) {
+                assert!(disp[y * w + x] <= 0.0, "({x}, {y}) masked but matched {}", disp[y * w + x]);
+            }
+        }
+    }
+    // Next to them, depth is there.
+    assert!(disp[60 * w + 85] > 0.0 && (f64::from(disp[60 * w + 85]) - d).abs() < 0.2);
 }

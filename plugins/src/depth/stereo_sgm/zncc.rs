@@ -34,34 +34,47 @@ pub struct Plane {
     pub height: usize,
 }
 
-/// Box sums over `(2r+1)²` windows (clipped at the image border) of `C` channels per pixel.
-fn box_sums<const C: usize>(v: &[[f32; C]], w: usize, h: usize, r: usize) -> Vec<[f32; C]> {
-    let mut horizontal = vec![[0f32; C]; w * h];
-    horizontal.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let src = &v[y * w..(y + 1) * w];
-        let mut s = [0f64; C];
-        for x in 0..(r + 1).min(w) {
-            (0..C).for_each(|c| s[c] += f64::from(src[x][c]));
+/// The window sums of one disparity plane, row by row: running sums along each row of the six
+/// channels (count, Σl, Σl², Σr, Σr², Σlr of the jointly usable pixels, `channels(p)`), then
+/// running sums of those rows down the image (f64 accumulators, so that adding and removing
+/// along 320 steps does not drift), each finished row of sums handed to `emit(y, sums)`.
+fn window_sums(w: usize, h: usize, r: usize, channels: impl Fn(usize) -> [f32; 6], mut emit: impl FnMut(usize, &[[f64; 6]])) {
+    let mut horizontal = vec![[0f32; 6]; w * h];
+    let mut row_in = vec![[0f32; 6]; w];
+    for (y, row) in horizontal.chunks_mut(w).enumerate() {
+        row_in.iter_mut().enumerate().for_each(|(x, c)| *c = channels(y * w + x));
+        let mut s = [0f64; 6];
+        for px in &row_in[..(r + 1).min(w)] {
+            (0..6).for_each(|c| s[c] += f64::from(px[c]));
         }
         for x in 0..w {
-            (0..C).for_each(|c| row[x][c] = s[c] as f32);
+            (0..6).for_each(|c| row[x][c] = s[c] as f32);
             if x + r + 1 < w {
-                (0..C).for_each(|c| s[c] += f64::from(src[x + r + 1][c]));
+                (0..6).for_each(|c| s[c] += f64::from(row_in[x + r + 1][c]));
             }
             if x >= r {
-                (0..C).for_each(|c| s[c] -= f64::from(src[x - r][c]));
+                (0..6).for_each(|c| s[c] -= f64::from(row_in[x - r][c]));
             }
         }
-    });
-    let mut out = vec![[0f32; C]; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
-            for (o, v) in row.iter_mut().zip(&horizontal[yy * w..(yy + 1) * w]) {
-                (0..C).for_each(|c| o[c] += v[c]);
-            }
+    }
+    let mut s = vec![[0f64; 6]; w];
+    let add = |s: &mut [[f64; 6]], row: &[[f32; 6]], sign: f64| {
+        for (a, b) in s.iter_mut().zip(row) {
+            (0..6).for_each(|c| a[c] += sign * f64::from(b[c]));
         }
-    });
-    out
+    };
+    for y in 0..(r + 1).min(h) {
+        add(&mut s, &horizontal[y * w..(y + 1) * w], 1.0);
+    }
+    for y in 0..h {
+        emit(y, &s);
+        if y + r + 1 < h {
+            add(&mut s, &horizontal[(y + r + 1) * w..(y + r + 2) * w], 1.0);
+        }
+        if y >= r {
+            add(&mut s, &horizontal[(y - r) * w..(y - r + 1) * w], -1.0);
+        }
+    }
 }
 
 /// The ZNCC cost volume of `left` against `right` for the disparities `d_min..=d_max`,
@@ -75,35 +88,34 @@ pub fn costs(left: &Plane, right: &Plane, d_min: usize, d_max: usize, radius: us
     // Centred on the views' mean: the window sums' differences keep their precision in f32.
     let (sum, count) = gl.iter().zip(il.iter()).chain(gr.iter().zip(ir.iter())).filter(|(_, b)| !**b).fold((0f64, 0usize), |(s, c), (g, _)| (s + f64::from(*g), c + 1));
     let mean = (sum / count.max(1) as f64) as f32;
-    let area = ((2 * radius + 1) * (2 * radius + 1)) as f32;
-    let noise_var = noise_levels * noise_levels;
+    let area = ((2 * radius + 1) * (2 * radius + 1)) as f64;
+    let noise_var = f64::from(noise_levels * noise_levels);
     let usable = |p: usize, d: usize| p % w >= d && !il[p] && !ir[p - d];
     let planes: Vec<Vec<u16>> = (d_min..=d_max)
         .into_par_iter()
         .map(|d| {
-            let channels: Vec<[f32; 6]> = (0..w * h)
-                .map(|p| {
-                    if !usable(p, d) {
-                        return [0.0; 6];
-                    }
-                    let (l, r) = (gl[p] - mean, gr[p - d] - mean);
-                    [1.0, l, l * l, r, r * r, l * r]
-                })
-                .collect();
-            let sums = box_sums(&channels, w, h, radius);
-            (0..w * h)
-                .map(|p| {
-                    let [m, sl, sll, sr, srr, slr] = sums[p];
+            let mut plane = vec![WORST; w * h];
+            let channels = |p: usize| {
+                if !usable(p, d) {
+                    return [0.0; 6];
+                }
+                let (l, r) = (gl[p] - mean, gr[p - d] - mean);
+                [1.0, l, l * l, r, r * r, l * r]
+            };
+            window_sums(w, h, radius, channels, |y, sums| {
+                for (x, [m, sl, sll, sr, srr, slr]) in sums.iter().copied().enumerate() {
+                    let p = y * w + x;
                     if !usable(p, d) || m < 0.5 * area {
-                        return WORST;
+                        continue;
                     }
                     let eps = m * noise_var;
                     let var_l = (sll - sl * sl / m).max(0.0);
                     let var_r = (srr - sr * sr / m).max(0.0);
                     let rho = (slr - sl * sr / m) / ((var_l + eps) * (var_r + eps)).sqrt();
-                    ((1.0 - rho.clamp(-1.0, 1.0)) * COST_PER_RHO).round() as u16
-                })
-                .collect()
+                    plane[p] = ((1.0 - rho.clamp(-1.0, 1.0) as f32) * COST_PER_RHO).round() as u16;
+                }
+            });
+            plane
         })
         .collect();
     let mut volume = vec![WORST; w * h * n];
