@@ -5,6 +5,7 @@ mod cmd_calibrate_camera;
 mod cmd_calibrate_light;
 mod cmd_calibrate_vignetting;
 mod cmd_config;
+mod cmd_depth;
 mod cmd_depth_eval;
 mod cmd_eval;
 mod cmd_plugins;
@@ -49,6 +50,9 @@ enum Command {
     CalibrateLight(cmd_calibrate_light::CalibrateLightArgs),
     /// Fit vignetting.toml (lens and LED fall-off) to flat-field frames.
     CalibrateVignetting(cmd_calibrate_vignetting::CalibrateVignettingArgs),
+    /// Run the configured preprocessors and depth estimator over a folder and write each
+    /// frame's depth (16-bit PNG) and a false-colour strip (with the disparity for a stereo rig).
+    Depth(cmd_depth::DepthArgs),
     /// Single-frame error of the configured depth estimator against the input's depth.
     DepthEval(cmd_depth_eval::DepthEvalArgs),
     /// Run the configured preprocessors alone over a folder of images and write their output.
@@ -75,6 +79,7 @@ fn main() -> std::process::ExitCode {
         Command::Synth(a) => cmd_synth::run(&a),
         Command::Eval(a) => cmd_eval::run(&a),
         Command::Bench(a) => cmd_bench::run_bench(&a, &gpu),
+        Command::Depth(a) => cmd_depth::run(&a, &gpu),
         Command::DepthEval(a) => cmd_depth_eval::run(&a, &gpu),
         Command::CalibrateCamera(a) => cmd_calibrate_camera::run(&a),
         Command::CalibrateLight(a) => cmd_calibrate_light::run(&a),

@@ -76,7 +76,6 @@ fn a_mono_rig_is_refused_with_the_fix() {
     assert!(err.contains("[right]") && err.contains("rgb_right.txt"), "{err}");
 }
 
-
 /// A smooth texture with detail at several scales (analytic, so any sub-pixel shift is exact).
 fn texture(x: f64, y: f64) -> f32 {
     let t = 0.5 * (0.31 * x + 0.17 * y).sin() + 0.35 * (0.11 * x - 0.23 * y + 1.0).sin() + 0.25 * (0.53 * x + 0.41 * y + 2.0).sin();

@@ -86,7 +86,8 @@ pub fn costs(left: &Plane, right: &Plane, d_min: usize, d_max: usize, radius: us
     let n = d_max - d_min + 1;
     let (gl, il, gr, ir) = (&left.gray, &left.invalid, &right.gray, &right.invalid);
     // Centred on the views' mean: the window sums' differences keep their precision in f32.
-    let (sum, count) = gl.iter().zip(il.iter()).chain(gr.iter().zip(ir.iter())).filter(|(_, b)| !**b).fold((0f64, 0usize), |(s, c), (g, _)| (s + f64::from(*g), c + 1));
+    let (sum, count) =
+        gl.iter().zip(il.iter()).chain(gr.iter().zip(ir.iter())).filter(|(_, b)| !**b).fold((0f64, 0usize), |(s, c), (g, _)| (s + f64::from(*g), c + 1));
     let mean = (sum / count.max(1) as f64) as f32;
     let area = ((2 * radius + 1) * (2 * radius + 1)) as f64;
     let noise_var = f64::from(noise_levels * noise_levels);
