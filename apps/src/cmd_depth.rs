@@ -73,7 +73,7 @@ pub fn run(args: &DepthArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Resul
     };
     let depth_scale = dataset.camera_file().depth_scale;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    for i in 0..dataset.len() {
+    for i in 0..config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len())) {
         let mut frame = dataset.load(i)?;
         let mut report = StageReport::default();
         for (name, p) in &mut pre {
@@ -81,7 +81,7 @@ pub fn run(args: &DepthArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Resul
         }
         let est = depth.estimate(&frame, &mut Context::new(i, &rig, None, &mut report)).with_context(|| format!("{} on frame {i}", config.pipeline.depth))?;
         for w in &report.warnings {
-            eprintln!("warning: {w}");
+            eprintln!("warning: frame {i}: {w}");
         }
         let stem = format!("{i:04}");
         images::write_depth(&args.out.join(format!("{stem}_depth.png")), &est.depth_m, depth_scale)?;

@@ -108,11 +108,12 @@ fn the_shipped_configs_validate() {
     for entry in std::fs::read_dir(&dir).unwrap() {
         let path = entry.unwrap().path();
         let c = Config::load(Some(&path), &[]).unwrap_or_else(|e| panic!("{e}"));
-        capsule_slam_framework::config::validate::validate(&c, &registry, capsule_slam_framework::ViewKind::Mono, &path.display().to_string())
-            .unwrap_or_else(|e| panic!("{e}"));
+        // Validated for the rig its depth estimator takes (stereo-capsule.toml: a stereo one).
+        let views = registry.get(&c.pipeline.depth).map_or(capsule_slam_framework::ViewKind::Mono, |e| e.views);
+        capsule_slam_framework::config::validate::validate(&c, &registry, views, &path.display().to_string()).unwrap_or_else(|e| panic!("{e}"));
         n += 1;
     }
-    assert!(n >= 1);
+    assert!(n >= 2);
 }
 
 #[test]
@@ -381,4 +382,45 @@ fn synth_stereo_writes_the_right_views_and_the_rig() {
     assert_eq!(cam.right.and_then(|r| r.translation_m), Some(vec![-0.005, 0.0, 0.0]));
     let (ok, _, err) = output(&["synth", "--frames", "1", "--stereo", "90", "--out", out.to_str().unwrap(), "-q"]);
     assert!(!ok && err.contains("stereo_baseline_mm"), "{err}");
+}
+
+#[test]
+fn the_stereo_config_runs_a_stereo_phantom_at_metric_scale_without_a_light_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("st");
+    let (ok, _, err) = output(&["synth", "--preset", "1", "--frames", "60", "--size", "naneye", "--stereo", "--out", data.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    std::fs::remove_file(data.join("light.toml")).unwrap();
+    let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/stereo-capsule.toml");
+    let (config, data_s) = (config.to_str().unwrap(), data.to_str().unwrap());
+    let out = tmp.path().join("out");
+    let (ok, stdout, err) = output(&["run", "--config", config, "--input", data_s, "--out", out.to_str().unwrap(), "-q"]);
+    assert!(ok, "{err}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        (summary["status"].as_str(), summary["metric_scale"].as_bool(), summary["frames_lost"].as_u64()),
+        (Some("complete"), Some(true), Some(0)),
+        "{stdout}"
+    );
+    // Metric without any scale alignment: the best Sim(3) scale is 1 within 4 % and the SE(3) ATE
+    // small for 60 frames over the whole 86 mm path (measured 0.60 % and 1.014; 0.34 % over the
+    // 300 frames of `synth --preset 1 --stereo` at 320×320, docs/results/stereo.md).
+    let (ate, scale) = (summary["ate_percent_of_path"].as_f64().unwrap(), summary["sim3_scale"].as_f64().unwrap());
+    assert!(ate < 1.2 && (scale - 1.0).abs() < 0.04, "ATE {ate} % of the path, Sim(3) scale {scale}\n{stdout}");
+    // depth-eval scores the stereo depth with its disparity errors and what both cameras see.
+    let (ok, stdout, err) = output(&["depth-eval", "--config", config, "--input", data_s, "--every", "30"]);
+    assert!(ok, "{err}");
+    let line = stdout.lines().find(|l| l.starts_with("| none |")).unwrap();
+    let abs_rel: f64 = line.split('|').nth(2).unwrap().trim().parse().unwrap();
+    assert!(abs_rel < 0.03, "{stdout}");
+    assert!(stdout.contains("% of pixels off by > 1 px") && stdout.contains("of the pixels both cameras see"), "{stdout}");
+    // depth writes each frame's depth and its strip.
+    let dout = tmp.path().join("depth");
+    let (ok, stdout, err) = output(&["depth", "--config", config, "--input", data_s, "--out", dout.to_str().unwrap(), "--set", "input.max_frames=2"]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("median disparity"), "{stdout}");
+    let d = capsule_slam_io::images::read_depth(&dout.join("0001_depth.png"), 5000.0, None).unwrap();
+    let truth = capsule_slam_io::images::read_depth(&data.join("depth/000001.png"), 5000.0, None).unwrap();
+    let e = capsule_slam_eval::depth::depth_error(&d, &truth, false).unwrap();
+    assert!(e.abs_rel < 0.03 && e.pixels > 20_000, "{e:?}");
 }

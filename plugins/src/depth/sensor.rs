@@ -82,7 +82,7 @@ impl DepthEstimator for Sensor {
         }
         ctx.count("valid_pixels", valid as f64);
         if valid == 0 {
-            ctx.warn(format!("frame {}: no depth within [{lo}, {hi}] m", frame.index));
+            ctx.warn(format!("no depth within [{lo}, {hi}] m"));
         }
         if let Some(why) = self.default_noise.take() {
             ctx.warn(why);

@@ -54,7 +54,7 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
     let sigma = frame.depth_sigma_m.as_ref().filter(|s| {
         let fits = s.size() == (w, h);
         if !fits {
-            ctx.warn(format!("frame {}: the depth σ image is {:?} but the depth {w}×{h}: the fixed depth gate is used", frame.index, s.size()));
+            ctx.warn(format!("the depth σ image is {:?} but the depth {w}×{h}: the fixed depth gate is used", s.size()));
         }
         fits
     });
@@ -68,7 +68,7 @@ pub fn measurements(frame: &RgbdFrame, t_world_cam: &Iso3, cam: &PinholeCamera, 
     let albedo = frame.albedo.as_ref().filter(|a| {
         let fits = a.size() == (w, h);
         if !fits {
-            ctx.warn(format!("frame {}: the albedo image is {:?} but the depth {w}×{h}: the frame's albedo is not fused", frame.index, a.size()));
+            ctx.warn(format!("the albedo image is {:?} but the depth {w}×{h}: the frame's albedo is not fused", a.size()));
         }
         fits
     });

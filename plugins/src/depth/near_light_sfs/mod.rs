@@ -302,7 +302,7 @@ impl DepthEstimator for NearLightSfs {
             ctx.count("map_albedo_share", out.map_albedo_pixels as f64 / valid.max(1) as f64);
         }
         if valid == 0 {
-            ctx.warn(format!("frame {}: no pixel usable for shape from shading (all masked, saturated or too dark); the depth is empty", frame.index));
+            ctx.warn("no pixel usable for shape from shading (all masked, saturated or too dark); the depth is empty");
         }
         Ok(DepthEstimate { depth_m: out.depth_m, confidence: Some(out.confidence), albedo: Some(out.albedo), sigma_m: None, sigma_correlation_px: 0.0 })
     }

@@ -79,6 +79,13 @@ capsule_slam_framework::plugin_params! {
         pub saturation: u32 = 250; unit = "8-bit"; range = 1.0..=256.0;
         /// σ of a matched disparity, the depth's σ is `z² σ_d / (f b)` (the phantom: 0.3).
         pub disparity_sigma_px: f64 = 0.3; unit = "px"; range = 0.01..=10.0;
+        /// Correlation length of the depth error handed to the trackers (a block of this size
+        /// counts as one measurement; `DepthEstimate::sigma_correlation_px`). The refinement's
+        /// window is 21 px, but counting 21×21 blocks leaves tracking to the photometric term,
+        /// which fails without a light model when the capsule moves fast: SE(3) ATE on presets
+        /// 1 / 5 / preset 1 in 30 frames 0.34 / 0.16 / 14.8 % at 21, 0.40 / 0.14 / 5.7 % at 8,
+        /// 0.55 / 0.15 / 2.0 % at 0 (`docs/results/stereo.md`).
+        pub correlation_px: f64 = 8.0; unit = "px"; range = 0.0..=200.0;
     }
 }
 
@@ -180,11 +187,9 @@ impl DepthEstimator for StereoSgm {
         let valid = depth_m.data().iter().filter(|d| **d > 0.0).count();
         ctx.count("valid_pixels", valid as f64);
         if valid == 0 {
-            ctx.warn(format!("frame {}: stereo matching found no depth (textureless, masked or out of range views?)", frame.index));
+            ctx.warn("stereo matching found no depth (textureless, masked or out of range views?)");
         }
-        // The refinement's window correlates the errors of neighbouring pixels.
-        let window_px = f64::from(2 * self.params.radius + 1);
-        Ok(DepthEstimate { depth_m, confidence: None, albedo: None, sigma_m: Some(sigma_m), sigma_correlation_px: window_px })
+        Ok(DepthEstimate { depth_m, confidence: None, albedo: None, sigma_m: Some(sigma_m), sigma_correlation_px: self.params.correlation_px })
     }
 }
 

@@ -196,7 +196,7 @@ impl DepthEstimator for TsaiShah {
         let mut e = capsule_slam_framework::image::gray_from_rgb(img);
         let max = e.data().iter().zip(valid.data()).filter(|(_, v)| **v).map(|(g, _)| *g).fold(0.0f32, f32::max);
         let empty = |ctx: &mut Context, why: &str| {
-            ctx.warn(format!("frame {}: {why}; the depth is empty", frame.index));
+            ctx.warn(format!("{why}; the depth is empty"));
             Ok(DepthEstimate { depth_m: DepthMap::new(w, h), confidence: Some(GrayF32::new(w, h)), albedo: None, sigma_m: None, sigma_correlation_px: 0.0 })
         };
         if max <= 0.0 {

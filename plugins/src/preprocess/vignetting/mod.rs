@@ -65,14 +65,17 @@ pub enum Source {
     File,
     /// Estimated from the sequence.
     Sequence,
+    /// Nothing divided: the frames pass unchanged.
+    None,
 }
 
 capsule_slam_framework::plugin_params! {
     /// Parameters of `vignetting`.
     pub struct VignettingParams {
-        /// Where the fall-off comes from: `light`, `file`, `sequence`, or `auto` (`light` or
-        /// `file` if the input folder has its file; else, when the depth is estimated, the
-        /// assumed light of an uncalibrated capsule, and `sequence` when it is measured).
+        /// Where the fall-off comes from: `light`, `file`, `sequence`, `none`, or `auto`
+        /// (`light` or `file` if the input folder has its file; else, when the depth is
+        /// estimated, the assumed light of an uncalibrated capsule, for a stereo rig `none`,
+        /// and `sequence` for an RGB-D input).
         pub source: Source = Source::Auto; unit = "-";
         /// What to divide: `lens-and-light` (for near-light shape from shading) or `flat-field`
         /// (for a distant-light model such as tsai-shah).
@@ -139,11 +142,26 @@ impl Plugin for Vignetting {
     fn build(params: VignettingParams, env: &BuildEnv) -> Result<Self, StageError> {
         let path = |name: &str| env.input_file(name);
         let monocular = env.depth_source == Some(capsule_slam_framework::frame::DepthSource::Estimated);
+        // A stereo rig's depth does not need the fall-off, and its photometric tracking needs
+        // the same brightness in every frame: learning the fall-off from the first frames
+        // changes it while tracking starts (stereo preset 1, 24 frames: SE(3) ATE 6.1 % of the
+        // path with `sequence`, 3.5 % with the assumed light, 0.8 % uncorrected;
+        // `docs/results/stereo.md`).
+        let stereo = env.rig.kind() == capsule_slam_framework::camera::ViewKind::Stereo;
         let chosen = match params.source {
             Source::Auto if path(&params.light_file).is_file() => Source::Light,
             Source::Auto if path(&params.vignetting_file).is_file() => Source::File,
             // Without a calibration, a depth estimated from the shading must see the fall-off
-            // its own assumed light divides (`near-light-sfs`), not one learnt from that depth.
+            // its own assumed light divides (`near-light-sfs`), not one learnt from that depth;
+            // a stereo rig is left uncorrected.
+            Source::Auto if stereo => {
+                let mut v = Self::new(params, FalloffSource::None);
+                v.pending_warning = Some(
+                    "no light.toml or vignetting.toml in the input folder: the stereo views are left uncorrected (stereo matching does not need it; a fall-off learnt from the first frames would change the brightness while tracking starts; `capsule-slam calibrate-vignetting` measures the capsule's)"
+                        .into(),
+                );
+                return Ok(v);
+            }
             Source::Auto if monocular => {
                 let light = LightModel::uncalibrated();
                 let why = format!(
@@ -169,6 +187,7 @@ impl Plugin for Vignetting {
                 ))
             })?),
             Source::Sequence | Source::Auto => FalloffSource::Sequence,
+            Source::None => FalloffSource::None,
         };
         Ok(Self::new(params, source))
     }
@@ -182,6 +201,8 @@ pub enum FalloffSource {
     File(VignettingFile),
     /// Learn from the sequence.
     Sequence,
+    /// Divide nothing.
+    None,
 }
 
 impl Vignetting {
@@ -196,7 +217,7 @@ impl Vignetting {
         match &self.source {
             FalloffSource::Light(l) => l.gamma,
             FalloffSource::File(f) => f.gamma,
-            FalloffSource::Sequence => self.params.gamma,
+            FalloffSource::Sequence | FalloffSource::None => self.params.gamma,
         }
     }
 
@@ -208,6 +229,7 @@ impl Vignetting {
             FalloffSource::Light(l) => light_falloff(l, cam, u, v, divide),
             FalloffSource::File(f) => f.falloff(cam, u, v, divide),
             FalloffSource::Sequence => profile_falloff(self.learner.profile()?, cam, u, v, divide),
+            FalloffSource::None => return None,
         })
     }
 
@@ -254,6 +276,9 @@ impl Preprocessor for Vignetting {
         if let Some(w) = self.pending_warning.take() {
             ctx.warn(w);
         }
+        if matches!(self.source, FalloffSource::None) {
+            return Ok(());
+        }
         if frame.photometry.divided.is_some() {
             if !self.warned_twice {
                 self.warned_twice = true;
@@ -293,7 +318,7 @@ impl Preprocessor for Vignetting {
             self.table = self.build_table(&cam);
         }
         let Some(table) = &self.table else {
-            ctx.warn(format!("frame {}: vignetting: no fall-off estimate yet (too few usable pixels); the frame is left uncorrected", frame.index));
+            ctx.warn("no fall-off estimate yet (too few usable pixels); the frame is left uncorrected");
             return Ok(());
         };
         for (i, img) in frame.views.iter_mut().enumerate() {

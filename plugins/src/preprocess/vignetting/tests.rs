@@ -251,3 +251,28 @@ fn the_shading_model_learns_the_fall_off_inside_a_tube_where_the_mean_cannot() {
     assert!(shading < 0.03, "shading model: {:.1} % radial bias", shading * 100.0);
     assert!(mean > 0.2, "the mean model should be fooled by the tube ({:.1} %)", mean * 100.0);
 }
+
+#[test]
+fn auto_leaves_an_uncalibrated_stereo_rig_uncorrected_and_says_so_once() {
+    use capsule_slam_framework::frame::Views;
+    use capsule_slam_framework::registry::BuildEnv;
+    let c = cam();
+    let rig = Rig::Stereo { left: c.clone(), right: c.clone(), t_right_left: capsule_slam_framework::stereo::rectified_t_right_left(0.005) };
+    let dir = tempfile::tempdir().unwrap();
+    let mut stage = Vignetting::build(VignettingParams::default(), &BuildEnv::new(rig.clone(), Some(dir.path().to_owned()))).unwrap();
+    let img = flat_image(&light(), &c);
+    let mut frame = CameraFrame { views: Views::Stereo { left: img.clone(), right: img.clone() }, ..CameraFrame::mono(0, 0.0, img.clone()) };
+    for i in 0..2 {
+        let mut report = StageReport::default();
+        stage.process(&mut frame, &mut Context::new(i, &rig, None, &mut report)).unwrap();
+        assert_eq!(report.warnings.len(), usize::from(i == 0), "{:?}", report.warnings);
+        assert!(i > 0 || report.warnings[0].contains("left uncorrected"));
+    }
+    let Views::Stereo { left, right } = &frame.views else { panic!("one view") };
+    assert!(left.data() == img.data() && right.data() == img.data() && frame.photometry.divided.is_none());
+    // With the light model in the folder, the same rig is corrected.
+    capsule_slam_framework::files::write_light_file(&dir.path().join("light.toml"), &light()).unwrap();
+    let mut stage = Vignetting::build(VignettingParams::default(), &BuildEnv::new(rig.clone(), Some(dir.path().to_owned()))).unwrap();
+    stage.process(&mut frame, &mut Context::new(2, &rig, None, &mut StageReport::default())).unwrap();
+    assert!(frame.photometry.divided.is_some());
+}
