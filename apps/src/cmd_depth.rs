@@ -7,14 +7,12 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context as _, bail};
+use anyhow::Context as _;
 use capsule_slam_framework::Rgb8;
 use capsule_slam_framework::camera::Rig;
-use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
-use capsule_slam_framework::registry::{BuildEnv, Stage};
 use capsule_slam_framework::stereo::rectify::Rectification;
-use capsule_slam_io::{Dataset, images};
+use capsule_slam_io::images;
 
 /// Arguments of `depth`.
 #[derive(clap::Args, Debug)]
@@ -31,6 +29,18 @@ pub struct DepthArgs {
     /// Override any config key (e.g. `--set pipeline.depth=stereo-sgm`).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
+}
+
+/// For a stereo rig, the rectified focal length times the baseline (pixel·metres): the
+/// disparity of depth z is `fb / z`. `None` for a mono rig.
+pub fn rectified_fb(rig: &Rig) -> anyhow::Result<Option<f64>> {
+    Ok(match rig {
+        Rig::Stereo { left, right, t_right_left } => {
+            let r = Rectification::new(left, right, t_right_left)?;
+            Some(r.camera.fx * r.baseline_m)
+        }
+        Rig::Mono(_) => None,
+    })
 }
 
 /// A perceptual blue → green → yellow → red ramp of `t` in [0, 1] (black where `None`).
@@ -54,23 +64,10 @@ fn range(v: &[f64]) -> (f64, f64) {
 }
 
 pub fn run(args: &DepthArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
-    let registry = crate::registry()?;
-    let config = crate::load_config(args.config.as_deref(), &args.set, &registry)?;
-    let dataset = Dataset::open(&args.input, &config.input, config.camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
-    let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
-    let mut pre = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
-    let Stage::DepthEstimator(mut depth) = crate::stages::build(&registry, &resolved, &env, &config.pipeline.depth)? else {
-        bail!("{} is not a depth estimator", config.pipeline.depth)
-    };
+    let crate::stages::FrontEnd { config, dataset, preprocessors: mut pre, mut depth } =
+        crate::stages::front_end(args.config.as_deref(), &args.set, &args.input, gpu)?;
     let rig = dataset.rig();
-    let fb = match &rig {
-        Rig::Stereo { left, right, t_right_left } => {
-            let r = Rectification::new(left, right, t_right_left).with_context(|| format!("rectifying the rig of {}", args.input.display()))?;
-            Some(r.camera.fx * r.baseline_m)
-        }
-        Rig::Mono(_) => None,
-    };
+    let fb = rectified_fb(&rig).with_context(|| format!("rectifying the rig of {}", args.input.display()))?;
     let depth_scale = dataset.camera_file().depth_scale;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     for i in 0..config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len())) {

@@ -9,11 +9,8 @@ use std::time::Instant;
 use anyhow::{Context as _, anyhow, bail};
 use capsule_slam_eval::depth::{DepthError, bad_disparity, coverage, depth_error};
 use capsule_slam_framework::camera::Rig;
-use capsule_slam_framework::config::validate::validate;
 use capsule_slam_framework::context::{Context, StageReport};
 use capsule_slam_framework::image::{DepthMap, Mask};
-use capsule_slam_framework::registry::{BuildEnv, Stage};
-use capsule_slam_io::Dataset;
 
 /// Arguments of `depth-eval`.
 #[derive(clap::Args, Debug)]
@@ -37,29 +34,15 @@ fn mean(v: &[DepthError], f: impl Fn(&DepthError) -> f64) -> f64 {
 }
 
 pub fn run(args: &DepthEvalArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
-    let registry = crate::registry()?;
-    let config = crate::load_config(args.config.as_deref(), &args.set, &registry)?;
-    let dataset = Dataset::open(&args.input, &config.input, config.camera.as_ref()).with_context(|| format!("opening {}", args.input.display()))?;
+    let crate::stages::FrontEnd { config, dataset, preprocessors: mut pre, mut depth } =
+        crate::stages::front_end(args.config.as_deref(), &args.set, &args.input, gpu)?;
     if !dataset.has_depth() {
         bail!("{} has no depth.txt: depth-eval needs ground-truth depth", args.input.display());
     }
-    let resolved = validate(&config, &registry, dataset.rig().kind(), "the config")?;
-    let env = BuildEnv::new(dataset.rig(), Some(args.input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
-    let mut pre = crate::stages::preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;
-    let Stage::DepthEstimator(mut depth) = crate::stages::build(&registry, &resolved, &env, &config.pipeline.depth)? else {
-        bail!("{} is not a depth estimator", config.pipeline.depth)
-    };
     let rig = dataset.rig();
     let fov = rig.camera().fov_mask();
     // The rectified focal length times the baseline: disparity = fb / z.
-    let fb = match &rig {
-        Rig::Stereo { left, right, t_right_left } => {
-            let r = capsule_slam_framework::stereo::rectify::Rectification::new(left, right, t_right_left)
-                .with_context(|| format!("rectifying the rig of {}", args.input.display()))?;
-            Some(r.camera.fx * r.baseline_m)
-        }
-        Rig::Mono(_) => None,
-    };
+    let fb = crate::cmd_depth::rectified_fb(&rig).with_context(|| format!("rectifying the rig of {}", args.input.display()))?;
     let (mut raw, mut scaled, mut ms, mut cov, mut bad) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut cov_both, mut both_share) = (Vec::new(), Vec::new());
     for i in (0..dataset.len()).step_by(args.every.max(1)) {

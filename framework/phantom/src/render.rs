@@ -1,7 +1,7 @@
 //! Ray-cast rendering of the phantom, row-parallel with rayon and deterministic: noise comes
 //! from a PCG stream seeded by (seed, frame, row).
 
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point2, Point3, Vector3};
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
@@ -85,25 +85,59 @@ struct Sample {
     specular: f64,
 }
 
+/// Where a pixel's ray meets the wall.
+struct RayHit {
+    /// The pixel's pinhole pixel (itself without a lens).
+    pin: Point2<f64>,
+    /// The unit ray in the camera frame.
+    d_cam: Vector3<f64>,
+    /// The distance along the ray, metres.
+    s: f64,
+    /// The world point.
+    p_w: Point3<f64>,
+}
+
 impl Phantom {
-    fn shade(&self, u: f64, v: f64, pose: &Iso3, t_s: f64, light: &LightModel) -> Option<Sample> {
+    /// Where the ray of pixel `(u, v)` meets the wall: the pixel's pinhole pixel, the unit ray
+    /// in the camera frame, the distance along it and the world point; `None` outside the field
+    /// of view, beyond the lens's fold (no ray lands there) or when the ray meets no wall.
+    fn hit(&self, u: f64, v: f64, pose: &Iso3, t_s: f64) -> Option<RayHit> {
         let cam = &self.camera;
         if !cam.in_fov(u, v) {
             return None;
         }
-        // A pixel no ray reaches (beyond the lens's fold) stays empty.
         let pin = cam.pinhole_pixel(u, v)?;
         let (xn, yn) = ((pin.x - cam.cx) / cam.fx, (pin.y - cam.cy) / cam.fy);
         let d_cam = Vector3::new(xn, yn, 1.0).normalize();
         let d_w = pose.rotation * d_cam;
         let o = Point3::from(pose.translation.vector);
         let s = self.shape.raycast(&o, &d_w, t_s, MAX_RAY_M)?;
-        let p_w = o + d_w * s;
+        Some(RayHit { pin, d_cam, s, p_w: o + d_w * s })
+    }
+
+    /// The linear RGB albedo of the wall at world point `p_w` (its texture at the rest shape).
+    fn albedo_at(&self, p_w: &Point3<f64>) -> [f64; 3] {
+        let tc = self.shape.coords(p_w);
+        texture::albedo(&self.shape.rest_point(tc.phi, tc.theta), self.spec.seed, self.spec.texture)
+    }
+
+    /// Ground truth of an observed albedo: the luminance (NTSC, linear) of the wall's albedo at
+    /// every pixel of frame `i`'s reference view (0 where no wall is seen).
+    pub fn albedo_image(&self, i: usize) -> GrayF32 {
+        let (pose, t_s) = (self.pose(i), self.time_s(i));
+        GrayF32::from_fn_par(self.camera.width, self.camera.height, |x, y| {
+            let a = self.hit(x as f64, y as f64, &pose, t_s).map(|hit| capsule_slam_framework::image::luminance(self.albedo_at(&hit.p_w)));
+            [a.unwrap_or(0.0) as f32]
+        })
+    }
+
+    fn shade(&self, u: f64, v: f64, pose: &Iso3, t_s: f64, light: &LightModel) -> Option<Sample> {
+        let cam = &self.camera;
+        let RayHit { pin, d_cam, s, p_w } = self.hit(u, v, pose, t_s)?;
         let n_w = self.shape.inward_normal(&p_w, t_s);
         let p_cam = Point3::from(d_cam * s);
         let n_cam = pose.rotation.inverse() * n_w;
-        let tc = self.shape.coords(&p_w);
-        let albedo = texture::albedo(&self.shape.rest_point(tc.phi, tc.theta), self.spec.seed, self.spec.texture);
+        let albedo = self.albedo_at(&p_w);
         // The lens and light fall-off V is a function of the ray (its pinhole pixel): what the
         // stages, which see undistorted frames, divide out with `light.toml`.
         let vig = light.vignetting_at(cam, pin.x, pin.y);

@@ -11,8 +11,11 @@
 //! 3. the depth `z = f b / d` returned in the left camera's own image, with its σ
 //!    `σ_z = z² σ_d / (f b)` (`disparity_sigma_px`), which the trackers and the fuser weigh by.
 //!
-//! Stereo needs no light model: its scale is the baseline's.
+//! Stereo needs no light model: its scale is the baseline's. Where the input has one
+//! (`light.toml`), the estimate also carries each pixel's observed albedo ([`albedo`]), which
+//! the fuser averages into the map.
 
+pub mod albedo;
 pub mod matcher;
 pub mod pyramid;
 pub mod remap;
@@ -25,6 +28,8 @@ use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stereo::rectify::Side;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimate, DepthEstimator, DepthMap, Plugin, StageError, register};
 
+use albedo::{AlbedoInput, AlbedoModel};
+use capsule_slam_framework::GrayF32;
 use matcher::MatchSettings;
 use remap::Rectifier;
 use sgm::SgmSettings;
@@ -86,6 +91,14 @@ capsule_slam_framework::plugin_params! {
         /// 1 / 5 / preset 1 in 30 frames 0.34 / 0.16 / 14.8 % at 21, 0.40 / 0.14 / 5.7 % at 8,
         /// 0.55 / 0.15 / 2.0 % at 0 (`docs/results/stereo.md`).
         pub correlation_px: f64 = 8.0; unit = "px"; range = 0.0..=200.0;
+        /// The capsule's light model, relative to the input folder: where it exists, each
+        /// pixel's observed albedo is returned beside the depth; where not, none (stereo needs
+        /// no light).
+        pub light_file: String = "light.toml".to_string(); unit = "path";
+        /// Half the span of the depth differences a pixel's normal is taken from, for its
+        /// albedo (cos θ): wider is smoother (the phantom pair's bias in the albedo: +3.1 % at
+        /// 1 px, +1.5 % at 4, +0.5 % at 8).
+        pub normal_px: u32 = 8; unit = "px"; range = 1.0..=30.0;
     }
 }
 
@@ -93,6 +106,8 @@ capsule_slam_framework::plugin_params! {
 pub struct StereoSgm {
     params: StereoSgmParams,
     rectifier: Rectifier,
+    /// The light model of `light_file`, if the input has one.
+    albedo: Option<AlbedoModel>,
 }
 
 impl Plugin for StereoSgm {
@@ -106,11 +121,42 @@ impl Plugin for StereoSgm {
         if params.paths != 4 && params.paths != 8 {
             return Err(StageError::invalid_input(format!("stereo-sgm: paths = {} (use 4 or 8)", params.paths)));
         }
-        Ok(Self { rectifier: Rectifier::new(&env.rig)?, params })
+        let path = env.input_file(&params.light_file);
+        let albedo = match path.exists() {
+            false => None,
+            true => Some(AlbedoModel::new(capsule_slam_framework::files::read_light_file(&path).map_err(|e| {
+                StageError::invalid_input(format!(
+                    "{e}; `stereo-sgm` reads the capsule's light model there for the observed albedo: fix the file (`capsule-slam calibrate-light` fits one), or set plugins.stereo-sgm.light_file to a file that does not exist to run without albedo"
+                ))
+            })?)),
+        };
+        Ok(Self { rectifier: Rectifier::new(&env.rig)?, params, albedo })
     }
 }
 
 impl StereoSgm {
+    /// The same estimator with a light model: it returns the observed albedo too.
+    pub fn with_light(mut self, light: capsule_slam_framework::light::LightModel) -> Self {
+        self.albedo = Some(AlbedoModel::new(light));
+        self
+    }
+
+    /// Each pixel's observed albedo given the frame's depth, if there is a light model.
+    pub fn albedo(&self, frame: &CameraFrame, depth_m: &DepthMap, cam: &capsule_slam_framework::camera::PinholeCamera) -> Option<GrayF32> {
+        let model = self.albedo.as_ref()?;
+        let Views::Stereo { left, .. } = &frame.views else { return None };
+        let ignore = frame.masks.union();
+        let input = AlbedoInput {
+            image: left,
+            depth_m,
+            ignore: ignore.as_ref(),
+            divided: frame.photometry.divided,
+            saturation: self.params.saturation.min(256) as u16,
+            normal_px: self.params.normal_px as usize,
+        };
+        Some(model.observe(&input, cam))
+    }
+
     /// The matcher's settings at this rig: the disparity range of the depth range.
     pub fn settings(&self) -> MatchSettings {
         let (p, r) = (&self.params, &self.rectifier.rect);
@@ -189,7 +235,8 @@ impl DepthEstimator for StereoSgm {
         if valid == 0 {
             ctx.warn("stereo matching found no depth (textureless, masked or out of range views?)");
         }
-        Ok(DepthEstimate { depth_m, confidence: None, albedo: None, sigma_m: Some(sigma_m), sigma_correlation_px: self.params.correlation_px })
+        let albedo = self.albedo(frame, &depth_m, ctx.rig.camera());
+        Ok(DepthEstimate { depth_m, confidence: None, albedo, sigma_m: Some(sigma_m), sigma_correlation_px: self.params.correlation_px })
     }
 }
 

@@ -40,6 +40,7 @@ impl SgmSettings {
 }
 
 /// One path's step (Eq. 13) from the previous pixel's path costs `prev` into `out`.
+#[inline(always)]
 fn step(c: &[u16], prev: &[u16], out: &mut [u16], p1: u16, p2: u16) {
     let n = c.len();
     let prev_min = prev.iter().copied().min().unwrap_or(0);
@@ -53,6 +54,28 @@ fn step(c: &[u16], prev: &[u16], out: &mut [u16], p1: u16, p2: u16) {
         }
         best = best.min(prev_min.saturating_add(p2));
         out[k] = c[k] + best - prev_min;
+    }
+}
+
+/// [`step`] for `N` disparities known at compile time (the refinements' 5): unrolled.
+#[inline(always)]
+fn step_fixed<const N: usize>(c: &[u16; N], prev: &[u16; N], out: &mut [u16; N], p1: u16, p2: u16) {
+    let prev_min = prev.iter().copied().fold(u16::MAX, u16::min);
+    let floor = prev_min.saturating_add(p2);
+    for k in 0..N {
+        let left = if k > 0 { prev[k - 1].saturating_add(p1) } else { u16::MAX };
+        let right = if k + 1 < N { prev[k + 1].saturating_add(p1) } else { u16::MAX };
+        out[k] = c[k] + prev[k].min(left).min(right).min(floor) - prev_min;
+    }
+}
+
+/// One path step for `n` disparities: the unrolled form for 5 (±2 px of residual), else the
+/// general one.
+#[inline(always)]
+fn step_any(c: &[u16], prev: &[u16], out: &mut [u16], p1: u16, p2: u16) {
+    match (<&[u16; 5]>::try_from(c), <&[u16; 5]>::try_from(prev), <&mut [u16; 5]>::try_from(&mut *out)) {
+        (Ok(c), Ok(prev), Ok(out)) => step_fixed(c, prev, out, p1, p2),
+        _ => step(c, prev, out, p1, p2),
     }
 }
 
@@ -100,7 +123,7 @@ fn path_costs(c: &[u16], w: usize, h: usize, n: usize, (dx, dy): (isize, isize),
                 (j > 0 && px >= 0 && (px as usize) < w).then(|| &prev_row[px as usize * n..(px as usize + 1) * n])
             };
             match prev {
-                Some(prev) => step(cell, prev, out, s.p1, s.p2),
+                Some(prev) => step_any(cell, prev, out, s.p1, s.p2),
                 None => out.copy_from_slice(cell),
             }
             last.copy_from_slice(out);
