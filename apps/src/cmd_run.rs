@@ -67,12 +67,16 @@ fn substitute_oracles(config: &mut Config, registry: &Registry) {
     }
 }
 
+/// Where phantoms are made once and reused: `$CAPSULE_SLAM_CACHE`, default `.cache/capsule-slam`.
+pub fn cache_dir() -> PathBuf {
+    std::env::var_os("CAPSULE_SLAM_CACHE").map_or_else(|| PathBuf::from(".cache/capsule-slam"), PathBuf::from)
+}
+
 /// The built-in default input: phantom preset 2 at 320×320, 300 frames, generated once into a
 /// cache folder (`$CAPSULE_SLAM_CACHE`, default `.cache/capsule-slam`) and reused.
 fn default_phantom(quiet: bool) -> anyhow::Result<PathBuf> {
     let spec = PhantomSpec::preset(2);
-    let cache = std::env::var_os("CAPSULE_SLAM_CACHE").map_or_else(|| PathBuf::from(".cache/capsule-slam"), PathBuf::from);
-    let dir = cache.join(format!("phantom-preset{}-320-{}f-seed{}", spec.preset, spec.frames, spec.seed));
+    let dir = cache_dir().join(format!("phantom-preset{}-320-{}f-seed{}", spec.preset, spec.frames, spec.seed));
     if is_complete(&dir, &spec) {
         eprintln!("input: the built-in phantom (preset 2, 320×320, {} frames), cached in {}", spec.frames, dir.display());
     } else {
@@ -82,9 +86,24 @@ fn default_phantom(quiet: bool) -> anyhow::Result<PathBuf> {
     Ok(dir)
 }
 
-pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
-    let registry = crate::registry()?;
-    let mut config = crate::load_config(args.config.as_deref(), &args.set, &registry)?;
+/// The build of this binary, as `summary.json` records it.
+pub const BUILD: capsule_slam_run::BuildStamp = capsule_slam_run::BuildStamp { version: env!("CARGO_PKG_VERSION"), commit: env!("CAPSULE_SLAM_COMMIT") };
+
+/// What `run` runs: the config with the command line's overrides and the oracles in, the
+/// config's source name and the input folder (the built-in phantom, made if need be, when none
+/// is given).
+pub struct Prepared {
+    /// The config.
+    pub config: Config,
+    /// Where it came from, for error messages.
+    pub source: String,
+    /// The input folder.
+    pub input: PathBuf,
+}
+
+/// Loads and completes the config of `args`.
+pub fn prepare(args: &RunArgs, registry: &Registry) -> anyhow::Result<Prepared> {
+    let mut config = crate::load_config(args.config.as_deref(), &args.set, registry)?;
     let source = capsule_slam_framework::config::Config::source_name(args.config.as_deref(), &args.set);
     if let Some(i) = &args.input {
         config.input.path = Some(i.clone());
@@ -95,11 +114,24 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     if let Some(n) = args.frames {
         config.input.max_frames = Some(n);
     }
-    substitute_oracles(&mut config, &registry);
+    substitute_oracles(&mut config, registry);
     let input = match config.input.path.clone() {
         Some(p) => p,
         None => default_phantom(args.quiet)?,
     };
+    Ok(Prepared { config, source, input })
+}
+
+/// The resolved configuration (`config.toml`) a run of `args` writes, without running it.
+pub fn resolved_config_text(args: &RunArgs, registry: &Registry) -> anyhow::Result<String> {
+    let Prepared { config, source, input } = prepare(args, registry)?;
+    let dataset = Dataset::open(&input, &config.input, config.camera.as_ref()).with_context(|| format!("opening the input {}", input.display()))?;
+    Ok(Pipeline::resolve(&config, &source, registry, dataset.rig().kind())?.to_toml_string())
+}
+
+pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<()> {
+    let registry = crate::registry()?;
+    let Prepared { config, source, input } = prepare(args, &registry)?;
     let dataset = Dataset::open(&input, &config.input, config.camera.as_ref()).with_context(|| format!("opening the input {}", input.display()))?;
     if dataset.dropped_without_depth() > 0 {
         eprintln!("note: {} rgb frames have no depth image within {} s and are skipped", dataset.dropped_without_depth(), config.input.association_tolerance_s);
@@ -113,7 +145,8 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     let n = config.input.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(n as u64) };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
-    let opts = RunOptions { max_frames: config.input.max_frames, write_map: config.output.map, eval_sim3: false, closure_report: args.closure_report };
+    let opts =
+        RunOptions { max_frames: config.input.max_frames, write_map: config.output.map, eval_sim3: false, closure_report: args.closure_report, build: BUILD };
     let result = run_pipeline(&dataset, &mut pipeline, &mut writer, &opts, |rec| {
         for w in rec.warnings() {
             bar.suspend(|| eprintln!("warning: frame {}: {w}", rec.index));

@@ -13,6 +13,7 @@ mod cmd_preprocess;
 mod cmd_preprocess_eval;
 mod cmd_run;
 mod cmd_synth;
+mod compare;
 mod plot;
 mod stages;
 
@@ -38,6 +39,9 @@ static PLUGIN_LIBS: std::sync::OnceLock<Vec<std::path::PathBuf>> = std::sync::On
 enum Command {
     /// Run a pipeline over a sequence and write the trajectory, the map and the metrics.
     Run(cmd_run::RunArgs),
+    /// Run variants × inputs (× sweeps) of a plan, each cell an ordinary run, and tabulate
+    /// and plot them (`results.csv`, `results.md`, `plots/`); resumes, emits jobs, collects.
+    Compare(compare::CompareArgs),
     /// List every registered plugin with its stage, parameters, defaults and units.
     Plugins,
     /// Print configuration.
@@ -74,6 +78,7 @@ fn main() -> std::process::ExitCode {
     let gpu = capsule_slam_gpu::GpuHandle::new();
     let result = match cli.command {
         Command::Run(a) => cmd_run::run(&a, &gpu),
+        Command::Compare(a) => compare::run(&a, &gpu),
         Command::Plugins => cmd_plugins::run(),
         Command::Config(a) => cmd_config::run(&a),
         Command::Synth(a) => cmd_synth::run(&a),

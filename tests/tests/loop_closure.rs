@@ -39,7 +39,7 @@ fn run_with(data: &std::path::Path, out: &std::path::Path, closer: &str) -> (Sum
     let mut p = Pipeline::build(&cfg, "test", &registry, &BuildEnv::new(ds.rig(), Some(data.to_owned()))).unwrap();
     let mut w = RunWriter::create(out, &p.resolved_config().to_toml_string()).unwrap();
     let mut records = Vec::new();
-    let opts = RunOptions { max_frames: None, write_map: true, eval_sim3: false, closure_report: true };
+    let opts = RunOptions { max_frames: None, write_map: true, eval_sim3: false, closure_report: true, ..RunOptions::default() };
     let summary = run(&ds, &mut p, &mut w, &opts, |r| records.push(r.clone())).unwrap();
     (summary, records)
 }

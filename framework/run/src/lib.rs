@@ -9,5 +9,5 @@ pub mod truth;
 pub mod writer;
 
 pub use runner::{GT_SURFACE_FILE, RunOptions, run};
-pub use summary::Summary;
+pub use summary::{BuildStamp, Summary};
 pub use writer::RunWriter;

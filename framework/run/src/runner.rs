@@ -27,6 +27,8 @@ pub struct RunOptions {
     /// error and the trajectory's ATE just before and just after it (`closures.csv`). Costs a
     /// map snapshot per frame.
     pub closure_report: bool,
+    /// The build, recorded in `summary.json`.
+    pub build: crate::summary::BuildStamp,
 }
 
 /// The ground-truth surface of an input folder, when it has one.
@@ -98,6 +100,7 @@ pub fn run(
         failure = no_result(&records, map.as_ref());
     }
     let mut summary = summarise(pipeline, &records, &counters, truth_warning.into_iter().chain(load_warnings));
+    summary.build = opts.build;
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
     if !abs_rel.is_empty() {

@@ -9,11 +9,22 @@ use capsule_slam_framework::pipeline::{FrameRecord, StageTimes};
 use capsule_slam_framework::stage::TrackStatus;
 use serde::Serialize;
 
+/// The build that made a run: what `compare` checks before it reuses a finished cell.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct BuildStamp {
+    /// The crate version.
+    pub version: &'static str,
+    /// The git commit it was built from (`unknown` outside a git checkout).
+    pub commit: &'static str,
+}
+
 /// `summary.json`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct Summary {
     /// `complete`, or `failed at frame N: reason`.
     pub status: String,
+    /// The build that ran.
+    pub build: BuildStamp,
     /// Frames processed.
     pub frames: usize,
     /// Frames whose tracking was lost.

@@ -61,10 +61,20 @@ fn ms_since(t: Instant) -> f64 {
 }
 
 impl Pipeline {
+    /// The configuration a pipeline built from `config` for a rig of `kind` records as its
+    /// resolved one (every selected plugin's defaults filled in), without building a stage:
+    /// what `compare` checks a finished run against.
+    pub fn resolve(config: &Config, source_name: &str, registry: &Registry, kind: crate::camera::ViewKind) -> Result<Config, ConfigError> {
+        let mut resolved = config.clone();
+        resolved.plugins = validate(config, registry, kind, source_name)?;
+        Ok(resolved)
+    }
+
     /// Validates the whole config against the registry and the rig, then builds every stage.
     /// Every problem (config or plugin constructor) is reported at once.
     pub fn build(config: &Config, source_name: &str, registry: &Registry, env: &BuildEnv) -> Result<Self, ConfigError> {
-        let resolved_tables = validate(config, registry, env.rig.kind(), source_name)?;
+        let resolved = Self::resolve(config, source_name, registry, env.rig.kind())?;
+        let resolved_tables = &resolved.plugins;
         let mut problems = Vec::new();
         let mut build = |name: &str, env: &BuildEnv| -> Option<Stage> {
             let entry = registry.get(name)?;
@@ -114,8 +124,6 @@ impl Pipeline {
         };
         let stages =
             Stages { preprocessors, depth: (p.depth.clone(), depth), tracker: (p.tracker.clone(), tracker), fuser: (p.fuser.clone(), fuser), loop_closer };
-        let mut resolved = config.clone();
-        resolved.plugins = resolved_tables;
         Ok(Self::from_stages(stages, env.rig.clone(), resolved))
     }
 
