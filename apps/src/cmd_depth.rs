@@ -44,7 +44,7 @@ pub fn rectified_fb(rig: &Rig) -> anyhow::Result<Option<f64>> {
 }
 
 /// A perceptual blue → green → yellow → red ramp of `t` in [0, 1] (black where `None`).
-fn ramp(t: Option<f64>) -> [u8; 3] {
+pub fn ramp(t: Option<f64>) -> [u8; 3] {
     let Some(t) = t else { return [0, 0, 0] };
     let stops = [[48.0, 18.0, 59.0], [40.0, 145.0, 235.0], [100.0, 240.0, 90.0], [250.0, 190.0, 40.0], [122.0, 4.0, 3.0]];
     let x = t.clamp(0.0, 1.0) * (stops.len() - 1) as f64;

@@ -35,9 +35,13 @@ pub struct RunArgs {
     /// Process at most N frames; overrides [input] max_frames.
     #[arg(long)]
     frames: Option<usize>,
-    /// No progress bar.
+    /// No progress bar (the plots are still written).
     #[arg(short, long)]
     quiet: bool,
+    /// Do not write `out/plots/` (trajectory over the ground truth, error over time, the map
+    /// from three viewpoints in colour and by confidence).
+    #[arg(long)]
+    no_plots: bool,
     /// Score every loop closure as it is applied (ATE and surface RMSE just before and after,
     /// `closures.csv`); needs an input with ground truth. Slower: a map snapshot per frame.
     #[arg(long)]
@@ -162,6 +166,15 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     let summary = result.with_context(|| format!("{ended} in {}", out.display()))?;
 
     print_summary(&summary, pipeline.depth_source());
+    if !args.no_plots {
+        let dir = out.join(capsule_slam_run::writer::PLOTS_DIR);
+        let map = pipeline.snapshot().ok();
+        let tolerance = config.input.association_tolerance_s;
+        match crate::run_plots::write(&dir, pipeline.trajectory(), dataset.ground_truth(), tolerance, !summary.metric_scale, map.as_ref()) {
+            Ok(n) => println!("plots             {n} in {}", dir.display()),
+            Err(e) => eprintln!("warning: the plots were not written: {e:#}"),
+        }
+    }
     println!("outputs           {}", out.display());
     Ok(())
 }

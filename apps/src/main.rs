@@ -15,6 +15,7 @@ mod cmd_run;
 mod cmd_synth;
 mod compare;
 mod plot;
+mod run_plots;
 mod stages;
 
 use clap::{Parser, Subcommand};

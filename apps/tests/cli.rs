@@ -69,6 +69,35 @@ fn run_on_a_tum_folder_writes_every_output_and_prints_the_metrics() {
     let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 8);
     assert_eq!(summary["pipeline"]["pipeline"]["tracker"], "nonrigid");
+    assert_eq!(summary["build"]["version"], env!("CARGO_PKG_VERSION"));
+    assert!(summary["build"]["commit"].as_str().is_some_and(|c| !c.is_empty()));
+    // The pictures: trajectory and error with ground truth, the map from three sides.
+    let plot = |name: &str| image::open(out.join("plots").join(name)).map(|i| i.to_rgb8());
+    for name in ["trajectory_top.png", "trajectory_side.png", "ate_over_time.png", "map_top_confidence.png"] {
+        assert!(plot(name).is_ok(), "plots/{name}");
+    }
+    for view in ["front", "top", "side"] {
+        // The map is in the picture: the fixture's wall faces the first camera, a good share
+        // of the front view; the others see it edge-on.
+        let img = plot(&format!("map_{view}_colour.png")).unwrap();
+        let lit = img.pixels().filter(|p| p.0 != [0, 0, 0]).count();
+        let least = if view == "front" { img.pixels().len() / 50 } else { 1 };
+        assert!(lit >= least, "map_{view}_colour.png: {lit} pixels");
+    }
+    // A second run replaces them (the folder is its own); --no-plots writes none.
+    let again = |extra: &[&str]| {
+        let mut a = vec!["run", "--input", tmp.path().to_str().unwrap(), "--out", out.to_str().unwrap(), "--set", "pipeline.depth=sensor", "-q"];
+        a.extend_from_slice(extra);
+        output(&a)
+    };
+    let (ok, _, err) = again(&["--frames", "4"]);
+    assert!(ok && out.join("plots/map_front_colour.png").is_file(), "{err}");
+    let (ok, _, err) = again(&["--frames", "4", "--no-plots"]);
+    assert!(ok && !out.join("plots/map_front_colour.png").exists(), "{err}");
+    // A file of the user's in plots/ makes the folder foreign.
+    std::fs::write(out.join("plots/mine.txt"), "keep").unwrap();
+    let (ok, _, err) = again(&["--frames", "4"]);
+    assert!(!ok && err.contains("plots/mine.txt"), "{err}");
 }
 
 #[test]

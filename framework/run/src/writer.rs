@@ -25,6 +25,30 @@ pub const COUNTERS_FILE: &str = "counters.jsonl";
 pub const RUN_OUTPUTS: [&str; 8] =
     ["config.toml", "trajectory.txt", "trajectory_online.txt", "frames.csv", COUNTERS_FILE, CLOSURES_FILE, "map.ply", "summary.json"];
 
+/// The folder of a run's pictures (written by the command line, `out/plots/`).
+pub const PLOTS_DIR: &str = "plots";
+
+/// Whether `name` is a picture a run writes into [`PLOTS_DIR`].
+fn is_run_plot(name: &str) -> bool {
+    name.ends_with(".png") && ["map_", "trajectory_", "ate_over_time"].iter().any(|p| name.starts_with(p))
+}
+
+/// The files of a previous run's [`PLOTS_DIR`] in `dir`, or the first file there a run does not
+/// write.
+fn previous_plots(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let Ok(entries) = std::fs::read_dir(dir.join(PLOTS_DIR)) else { return Ok(Vec::new()) };
+    let mut out = Vec::new();
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if !is_run_plot(&name) {
+            return Err(format!("{PLOTS_DIR}/{name}"));
+        }
+        out.push(e.path());
+    }
+    out.sort();
+    Ok(out)
+}
+
 /// One line of `counters.jsonl`: `{"frame": N, "plugin.counter": value, ...}` (keys sorted; a
 /// non-finite value is written as `null`, as JSON has no NaN).
 pub fn counters_line(frame: usize, counters: &BTreeMap<String, f64>) -> String {
@@ -65,7 +89,9 @@ impl RunWriter {
         let entries = std::fs::read_dir(dir).map_err(|e| LoadError::io(dir, e))?;
         let mut names: Vec<String> = entries.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
         names.sort();
-        if let Some(other) = names.iter().find(|n| !RUN_OUTPUTS.contains(&n.as_str())).filter(|_| !force) {
+        let plots = previous_plots(dir);
+        let foreign = names.iter().find(|n| !RUN_OUTPUTS.contains(&n.as_str()) && n.as_str() != PLOTS_DIR).cloned().or(plots.as_ref().err().cloned());
+        if let Some(other) = foreign.filter(|_| !force) {
             return Err(LoadError::parse(
                 dir,
                 0,
@@ -74,6 +100,9 @@ impl RunWriter {
         }
         for name in names.iter().filter(|n| RUN_OUTPUTS.contains(&n.as_str())) {
             let p = dir.join(name);
+            std::fs::remove_file(&p).map_err(|e| LoadError::io(&p, e))?;
+        }
+        for p in plots.unwrap_or_default() {
             std::fs::remove_file(&p).map_err(|e| LoadError::io(&p, e))?;
         }
         let cfg = dir.join("config.toml");
