@@ -326,6 +326,46 @@ fn a_plugin_library_loads_lists_its_plugins_and_runs_in_a_pipeline() {
 }
 
 #[test]
+fn a_tracker_from_a_plugin_library_tracks_in_a_pipeline() {
+    // The camera approaches the fixture's wall 0.5 mm a frame: what `example-depth-centroid`
+    // (ABI version 2) can see.
+    let tmp = tempfile::tempdir().unwrap();
+    let approach = |i: usize| capsule_slam_framework::geometry::Iso3::translation(0.0, 0.0, 0.0005 * i as f64);
+    capsule_slam_tests::fixtures::write_dataset_with(tmp.path(), 10, approach);
+    let lib = example_library();
+    let out = tmp.path().join("out");
+    let run = |tracker: &str| {
+        output(&[
+            "--plugin-lib",
+            lib.to_str().unwrap(),
+            "run",
+            "--input",
+            tmp.path().to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "-q",
+            "--no-plots",
+            "--force",
+            "--set",
+            "pipeline.depth=sensor",
+            "--set",
+            &format!("pipeline.tracker={tracker}"),
+        ])
+    };
+    let (ok, stdout, err) = run("example-depth-centroid");
+    assert!(ok, "{err}");
+    assert!(stdout.contains("frames lost       0"), "{stdout}\n{}", std::fs::read_to_string(out.join("frames.csv")).unwrap_or_default());
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    // 4.5 mm of path; the fused map is rendered from the last pose, so the mean depth step
+    // is the advance to within the fusion's averaging.
+    let ate = summary["ate_rmse_m"].as_f64().unwrap();
+    assert!(ate < 0.0002, "ATE {ate} m over 4.5 mm");
+    // The library tracker shows in `plugins` with its kind.
+    let (ok, listing, _) = output(&["--plugin-lib", lib.to_str().unwrap(), "plugins"]);
+    assert!(ok && listing.contains("example-depth-centroid (tracker)"), "{listing}");
+}
+
+#[test]
 fn a_plugin_library_named_without_a_directory_is_the_file_named_and_a_directory_is_not_one() {
     // A bare file name: the file in the working directory, not a search of the system's
     // library path by the dynamic loader (which does not look in the working directory).

@@ -65,6 +65,11 @@ pub fn render(cam: &CameraFile, pose: &Iso3) -> (Rgb8, DepthMap) {
 
 /// Writes an `n`-frame TUM dataset at 30 Hz into `dir`.
 pub fn write_dataset(dir: &Path, n: usize) -> Vec<StampedPose> {
+    write_dataset_with(dir, n, gt_pose)
+}
+
+/// [`write_dataset`] along the trajectory `pose(i)`.
+pub fn write_dataset_with(dir: &Path, n: usize, pose: impl Fn(usize) -> Iso3) -> Vec<StampedPose> {
     std::fs::create_dir_all(dir.join("rgb")).unwrap();
     std::fs::create_dir_all(dir.join("depth")).unwrap();
     let cam = camera();
@@ -75,7 +80,7 @@ pub fn write_dataset(dir: &Path, n: usize) -> Vec<StampedPose> {
     let mut gt = Vec::new();
     for i in 0..n {
         let t = 1.0 + i as f64 / 30.0;
-        let pose = gt_pose(i);
+        let pose = pose(i);
         let (rgb, depth) = render(&cam, &pose);
         images::write_rgb(&dir.join(format!("rgb/{i:04}.png")), &rgb).unwrap();
         images::write_depth(&dir.join(format!("depth/{i:04}.png")), &depth, cam.depth_scale).unwrap();

@@ -177,10 +177,11 @@ pub fn markdown(rows: &[Row], inputs: &[String], variants: &[String], title: &st
     out
 }
 
-/// Three significant digits (at least), no exponent for the usual ranges.
+/// Whole numbers as they are (counts); else three significant digits (at least), no exponent
+/// for the usual ranges.
 fn fmt(v: f64) -> String {
     let a = v.abs();
-    if a == 0.0 || a >= 100.0 {
+    if a == 0.0 || a >= 100.0 || (v.fract() == 0.0 && a < 1e9) {
         format!("{v:.0}")
     } else if a >= 1.0 {
         format!("{v:.2}")
@@ -217,12 +218,14 @@ mod tests {
 
     #[test]
     fn the_table_marks_the_best_and_averages_over_inputs() {
-        let rows = vec![r("a", "x", 0.001), r("a", "y", 0.002), r("b", "x", 0.003), r("b", "y", 0.001)];
+        let mut rows = vec![r("a", "x", 0.0015), r("a", "y", 0.0025), r("b", "x", 0.0035), r("b", "y", 0.001)];
+        rows[0].numbers.insert("frames_lost".into(), 1.0);
         let md = markdown(&rows, &["a".into(), "b".into()], &["x".into(), "y".into()], "t");
-        assert!(md.contains("| x | complete | **1.00** |") && md.contains("| y | complete | 2.00 |"), "{md}");
-        // x: mean 2 mm, sd √2.
-        assert!(md.contains("| x | 2 of 2 complete | 2.00 ± 1.41 |"), "{md}");
+        // A count stays whole; the lowest ATE of an input is bold.
+        assert!(md.contains("| x | complete | **1** | **1.50** |") && md.contains("| y | complete | — | 2.50 |"), "{md}");
+        // x: mean 2.5 mm, sd √2.
+        assert!(md.contains("| x | 2 of 2 complete | 1 ± 0 | 2.50 ± 1.41 |"), "{md}");
         let csv = csv(&rows);
-        assert!(csv.starts_with("input,variant,status,ate_rmse_m,ms_per_stage_mean.track\n") && csv.lines().count() == 5, "{csv}");
+        assert!(csv.starts_with("input,variant,status,ate_rmse_m,frames_lost,ms_per_stage_mean.track\n") && csv.lines().count() == 5, "{csv}");
     }
 }

@@ -1,9 +1,10 @@
 //! The plugin side of the C ABI, for plugins written in Rust: implement
-//! [`LibraryPreprocessor`] or [`LibraryDepthEstimator`], then list the types once in the
-//! library's `lib.rs`:
+//! [`LibraryPreprocessor`], [`LibraryDepthEstimator`], [`LibraryStereoDepthEstimator`] or
+//! [`LibraryTracker`], then list the types once in the library's `lib.rs`:
 //!
 //! ```ignore
-//! capsule_slam_framework::export_plugins!(preprocessor MyGamma, depth_estimator MyDepth);
+//! capsule_slam_abi::export_plugins!(preprocessor MyGamma, depth_estimator MyDepth,
+//!     stereo_depth_estimator MyStereo, tracker MyTracker);
 //! ```
 //!
 //! with `crate-type = ["cdylib", "rlib"]` in its Cargo.toml. The generated functions catch
@@ -20,6 +21,8 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use super::{AbiBuffer, AbiCamera, AbiImage, AbiPlugin, ERROR, KIND_DEPTH_ESTIMATOR, KIND_PREPROCESSOR, OK, PANIC, ParamDocToml, ParamDocsToml, ProblemsToml};
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::{DepthMap, Mask, Rgb8};
+
+pub use super::export_v2::{LibraryStereoDepthEstimator, LibraryTracker, ModelImages, TrackInput, TrackOutput, stereo_depth_estimator, tracker};
 use capsule_slam_framework::params::{PluginParams, parse_params};
 
 /// A stage built by a library.
@@ -59,6 +62,9 @@ pub const fn preprocessor<T: LibraryPreprocessor>() -> AbiPlugin {
         destroy: destroy::<T>,
         preprocess: Some(preprocess::<T>),
         estimate_depth: None,
+        track: None,
+        create_stereo: None,
+        estimate_stereo_depth: None,
     }
 }
 
@@ -74,6 +80,9 @@ pub const fn depth_estimator<T: LibraryDepthEstimator>() -> AbiPlugin {
         destroy: destroy::<T>,
         preprocess: None,
         estimate_depth: Some(estimate_depth::<T>),
+        track: None,
+        create_stereo: None,
+        estimate_stereo_depth: None,
     }
 }
 
@@ -96,7 +105,7 @@ macro_rules! export_plugins {
 ///
 /// # Safety
 /// `out` is null or a valid [`AbiBuffer`] whose `data` holds `capacity` writable bytes.
-unsafe fn write_text(out: *mut AbiBuffer, text: &str) {
+pub(crate) unsafe fn write_text(out: *mut AbiBuffer, text: &str) {
     // SAFETY: the caller's contract.
     let Some(out) = (unsafe { out.as_mut() }) else { return };
     let n = text.len().min(out.capacity);
@@ -111,7 +120,7 @@ unsafe fn write_text(out: *mut AbiBuffer, text: &str) {
 ///
 /// # Safety
 /// As [`write_text`] for `out`.
-unsafe fn guarded(out: *mut AbiBuffer, f: impl FnOnce() -> Result<(), String>) -> i32 {
+pub(crate) unsafe fn guarded(out: *mut AbiBuffer, f: impl FnOnce() -> Result<(), String>) -> i32 {
     match catch_unwind(AssertUnwindSafe(f)) {
         Ok(Ok(())) => OK,
         Ok(Err(message)) => {
@@ -132,7 +141,7 @@ unsafe fn guarded(out: *mut AbiBuffer, f: impl FnOnce() -> Result<(), String>) -
 ///
 /// # Safety
 /// `text` is null or NUL-terminated.
-unsafe fn host_str<'a>(text: *const c_char, what: &str) -> Result<&'a str, String> {
+pub(crate) unsafe fn host_str<'a>(text: *const c_char, what: &str) -> Result<&'a str, String> {
     if text.is_null() {
         return Err(format!("the host passed no {what}"));
     }
@@ -140,14 +149,14 @@ unsafe fn host_str<'a>(text: *const c_char, what: &str) -> Result<&'a str, Strin
     unsafe { CStr::from_ptr(text) }.to_str().map_err(|e| format!("the {what} is not UTF-8: {e}"))
 }
 
-fn parse_table<T: LibraryPlugin>(toml_text: &str) -> Result<T::Params, Vec<capsule_slam_framework::ConfigProblem>> {
+pub(crate) fn parse_table<T: LibraryPlugin>(toml_text: &str) -> Result<T::Params, Vec<capsule_slam_framework::ConfigProblem>> {
     let name = T::NAME.to_string_lossy();
     let table: toml::Table =
         toml_text.parse().map_err(|e| vec![capsule_slam_framework::ConfigProblem::new(format!("plugins.{name}"), format!("{e}"), "write a TOML table")])?;
     parse_params::<T::Params>(&name, &table)
 }
 
-unsafe extern "C" fn params<T: LibraryPlugin>(_input: *const c_char, out: *mut AbiBuffer) -> i32 {
+pub(crate) unsafe extern "C" fn params<T: LibraryPlugin>(_input: *const c_char, out: *mut AbiBuffer) -> i32 {
     // SAFETY: the host passes a valid buffer (ABI contract).
     unsafe {
         guarded(out, || {
@@ -170,7 +179,7 @@ unsafe extern "C" fn params<T: LibraryPlugin>(_input: *const c_char, out: *mut A
     }
 }
 
-unsafe extern "C" fn check<T: LibraryPlugin>(input: *const c_char, out: *mut AbiBuffer) -> i32 {
+pub(crate) unsafe extern "C" fn check<T: LibraryPlugin>(input: *const c_char, out: *mut AbiBuffer) -> i32 {
     // SAFETY: the host passes a NUL-terminated string and a valid buffer (ABI contract).
     unsafe {
         guarded(out, || {
@@ -184,7 +193,7 @@ unsafe extern "C" fn check<T: LibraryPlugin>(input: *const c_char, out: *mut Abi
     }
 }
 
-unsafe extern "C" fn create<T: LibraryPlugin>(
+pub(crate) unsafe extern "C" fn create<T: LibraryPlugin>(
     params_toml: *const c_char,
     camera: *const AbiCamera,
     state_out: *mut *mut c_void,
@@ -192,27 +201,46 @@ unsafe extern "C" fn create<T: LibraryPlugin>(
 ) -> i32 {
     // SAFETY: the host passes a NUL-terminated string, a valid camera and state slot, and a
     // valid buffer (ABI contract).
-    unsafe {
-        guarded(message, || {
-            let text = host_str(params_toml, "parameter table")?;
-            let params = parse_table::<T>(text).map_err(|p| p.iter().map(ToString::to_string).collect::<Vec<_>>().join("; "))?;
-            let c = camera.as_ref().ok_or("the host passed no camera")?;
-            let mut cam = PinholeCamera::new(c.width as usize, c.height as usize, c.fx, c.fy, c.cx, c.cy);
-            if c.fov_radius_px > 0.0 {
-                cam.fov_radius_px = Some(c.fov_radius_px);
-            }
-            if c.distortion.iter().any(|&k| k != 0.0) {
-                cam.distortion = Some(capsule_slam_framework::lens::LensModel::brown_conrady(c.distortion));
-            }
-            let stage = Box::new(T::build(params, &cam)?);
-            let slot = state_out.as_mut().ok_or("the host passed no state slot")?;
-            *slot = Box::into_raw(stage).cast();
-            Ok(())
-        })
-    }
+    unsafe { guarded(message, || store(state_out, built::<T>(params_toml, camera)?)) }
 }
 
-unsafe extern "C" fn destroy<T: LibraryPlugin>(state: *mut c_void) {
+/// A stage built from the host's parameter table and camera.
+///
+/// # Safety
+/// `params_toml` is null or NUL-terminated; `camera` is null or valid.
+pub(crate) unsafe fn built<T: LibraryPlugin>(params_toml: *const c_char, camera: *const AbiCamera) -> Result<T, String> {
+    // SAFETY: the caller's contract.
+    let text = unsafe { host_str(params_toml, "parameter table") }?;
+    let params = parse_table::<T>(text).map_err(|p| p.iter().map(ToString::to_string).collect::<Vec<_>>().join("; "))?;
+    // SAFETY: the caller's contract.
+    let cam = camera_in(unsafe { camera.as_ref() }.ok_or("the host passed no camera")?);
+    T::build(params, &cam)
+}
+
+/// Hands a stage to the host as its state.
+///
+/// # Safety
+/// `state_out` is null or a valid slot.
+pub(crate) unsafe fn store<T>(state_out: *mut *mut c_void, stage: T) -> Result<(), String> {
+    // SAFETY: the caller's contract.
+    let slot = unsafe { state_out.as_mut() }.ok_or("the host passed no state slot")?;
+    *slot = Box::into_raw(Box::new(stage)).cast();
+    Ok(())
+}
+
+/// The camera the host passed.
+pub(crate) fn camera_in(c: &AbiCamera) -> PinholeCamera {
+    let mut cam = PinholeCamera::new(c.width as usize, c.height as usize, c.fx, c.fy, c.cx, c.cy);
+    if c.fov_radius_px > 0.0 {
+        cam.fov_radius_px = Some(c.fov_radius_px);
+    }
+    if c.distortion.iter().any(|&k| k != 0.0) {
+        cam.distortion = Some(capsule_slam_framework::lens::LensModel::brown_conrady(c.distortion));
+    }
+    cam
+}
+
+pub(crate) unsafe extern "C" fn destroy<T: LibraryPlugin>(state: *mut c_void) {
     if !state.is_null() {
         // SAFETY: `state` was made by `create::<T>` and is freed once (ABI contract).
         let stage = unsafe { Box::from_raw(state.cast::<T>()) };
@@ -224,7 +252,7 @@ unsafe extern "C" fn destroy<T: LibraryPlugin>(state: *mut c_void) {
 ///
 /// # Safety
 /// `image` is null or points to an [`AbiImage`] whose data holds `3 · width · height` bytes.
-unsafe fn image_in(image: *const AbiImage) -> Result<Rgb8, String> {
+pub(crate) unsafe fn image_in(image: *const AbiImage) -> Result<Rgb8, String> {
     // SAFETY: the caller's contract.
     let img = unsafe { image.as_ref() }.ok_or("the host passed no image")?;
     let n = 3 * img.width as usize * img.height as usize;

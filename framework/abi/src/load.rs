@@ -7,20 +7,15 @@ use std::ffi::{CStr, CString, c_char, c_void};
 use std::path::{Path, PathBuf};
 
 use super::{
-    ABI_VERSION, AbiBuffer, AbiCamera, AbiImage, AbiPlugin, AbiPluginList, DepthFn, ENTRY_SYMBOL, EntryFn, KIND_DEPTH_ESTIMATOR, KIND_PREPROCESSOR, OK, PANIC,
-    ParamDocsToml, PreprocessFn, ProblemsToml,
+    ABI_VERSION, ABI_VERSION_MIN, AbiBuffer, AbiCamera, AbiPlugin, AbiPluginList, AbiPluginV1, ENTRY_SYMBOL, EntryFn, KIND_DEPTH_ESTIMATOR, KIND_PREPROCESSOR,
+    KIND_STEREO_DEPTH_ESTIMATOR, KIND_TRACKER, OK, PANIC, ParamDocsToml, ProblemsToml,
 };
-use capsule_slam_framework::context::Context;
+use capsule_slam_framework::camera::{PinholeCamera, ViewKind};
 use capsule_slam_framework::error::{ConfigProblem, RegistryError, StageError};
-use capsule_slam_framework::frame::CameraFrame;
-use capsule_slam_framework::image::{DepthMap, Mask};
 use capsule_slam_framework::lens::LensModel;
 use capsule_slam_framework::params::ParamDoc;
 use capsule_slam_framework::registry::{BuildEnv, BuildError, ForeignPlugin, PluginEntry, Registry, Stage, StageKind};
-use capsule_slam_framework::stage::{DepthEstimate, DepthEstimator, Preprocessor};
 
-/// Size of the buffer for a stage's error message, bytes (a longer message is cut).
-const MESSAGE_BYTES: usize = 4096;
 /// Largest text (parameter docs, problems) the host accepts from a library, bytes.
 const MAX_TEXT_BYTES: usize = 1 << 20;
 
@@ -35,9 +30,13 @@ pub struct LoadedPlugin {
     pub kind: StageKind,
     /// Its parameters.
     pub params: Vec<ParamDoc>,
+    /// The views it needs (a stereo depth estimator: both).
+    pub views: ViewKind,
     /// The library file.
     pub library: PathBuf,
-    raw: AbiPlugin,
+    /// The ABI version of its library.
+    pub abi_version: u32,
+    pub(crate) raw: AbiPlugin,
 }
 
 // SAFETY: `raw` holds pointers to the library's immutable static strings and its functions;
@@ -123,10 +122,13 @@ pub(crate) unsafe fn list_of(list: *const AbiPluginList, path: &Path) -> Result<
     }
     // SAFETY: the first field is a u32 in every ABI version.
     let version = unsafe { *list.cast::<u32>() };
-    if version != ABI_VERSION {
+    if !(ABI_VERSION_MIN..=ABI_VERSION).contains(&version) {
         return Err(library_error(
             path,
-            format!("it was built for plugin ABI version {version}; this capsule-slam speaks version {ABI_VERSION} (framework {})", env!("CARGO_PKG_VERSION")),
+            format!(
+                "it was built for plugin ABI version {version}; this capsule-slam speaks versions {ABI_VERSION_MIN} to {ABI_VERSION} (framework {})",
+                env!("CARGO_PKG_VERSION")
+            ),
             "rebuild the plugin against this capsule-slam framework",
         ));
     }
@@ -155,10 +157,14 @@ pub(crate) unsafe fn plugins_of(list: &AbiPluginList, path: &Path) -> Result<Vec
     if list.count == 0 || list.plugins.is_null() {
         return Err(library_error(path, "it declares no plugins", "list at least one plugin in `export_plugins!`"));
     }
-    // SAFETY: the caller's contract.
-    let raw = unsafe { std::slice::from_raw_parts(list.plugins, list.count) };
+    // SAFETY: the caller's contract; a version-1 list holds the shorter version-1 plugins.
+    let raw: Vec<AbiPlugin> = if list.abi_version == 1 {
+        unsafe { std::slice::from_raw_parts(list.plugins.cast::<AbiPluginV1>(), list.count) }.iter().map(|p| AbiPlugin::from(*p)).collect()
+    } else {
+        unsafe { std::slice::from_raw_parts(list.plugins, list.count) }.to_vec()
+    };
     let mut out = Vec::with_capacity(raw.len());
-    for p in raw {
+    for p in &raw {
         // SAFETY: the caller's contract.
         let name = unsafe { lib_str(p.name, path, "name")? };
         // SAFETY: the caller's contract.
@@ -166,24 +172,7 @@ pub(crate) unsafe fn plugins_of(list: &AbiPluginList, path: &Path) -> Result<Vec
         if name.is_empty() || !name.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-') {
             return Err(library_error(path, format!("plugin name `{name}` is not kebab-case"), "name it with lower-case letters, digits and '-'"));
         }
-        let kind = match (p.kind, p.preprocess.is_some(), p.estimate_depth.is_some()) {
-            (KIND_PREPROCESSOR, true, false) => StageKind::Preprocessor,
-            (KIND_DEPTH_ESTIMATOR, false, true) => StageKind::DepthEstimator,
-            (KIND_PREPROCESSOR | KIND_DEPTH_ESTIMATOR, _, _) => {
-                return Err(library_error(
-                    path,
-                    format!("plugin `{name}` declares kind {} but not exactly its one stage function", p.kind),
-                    "set `preprocess` for a preprocessor, `estimate_depth` for a depth estimator, and not the other",
-                ));
-            }
-            (k, _, _) => {
-                return Err(library_error(
-                    path,
-                    format!("plugin `{name}` has unknown kind {k}"),
-                    format!("use {KIND_PREPROCESSOR} (preprocessor) or {KIND_DEPTH_ESTIMATOR} (depth estimator)"),
-                ));
-            }
-        };
+        let (kind, views) = kind_of(p, name, path)?;
         // SAFETY: the caller's contract; null input asks for the docs.
         let (rc, text) = unsafe { call_text(p.params, std::ptr::null()) };
         if rc != OK {
@@ -203,9 +192,39 @@ pub(crate) unsafe fn plugins_of(list: &AbiPluginList, path: &Path) -> Result<Vec
                 range: d.range.map(|[lo, hi]| (lo, hi)),
             })
             .collect();
-        out.push(LoadedPlugin { name, summary, kind, params, library: path.to_path_buf(), raw: *p });
+        out.push(LoadedPlugin { name, summary, kind, params, views, library: path.to_path_buf(), abi_version: list.abi_version, raw: *p });
     }
     Ok(out)
+}
+
+/// A plugin's stage and views from its declared kind and the stage functions it sets (exactly
+/// those of its kind).
+fn kind_of(p: &AbiPlugin, name: &str, path: &Path) -> Result<(StageKind, ViewKind), RegistryError> {
+    let set = [p.preprocess.is_some(), p.estimate_depth.is_some(), p.track.is_some(), p.create_stereo.is_some() && p.estimate_stereo_depth.is_some()];
+    let (expected, stage, views, needs) = match p.kind {
+        KIND_PREPROCESSOR => (0, StageKind::Preprocessor, ViewKind::Mono, "`preprocess`"),
+        KIND_DEPTH_ESTIMATOR => (1, StageKind::DepthEstimator, ViewKind::Mono, "`estimate_depth`"),
+        KIND_TRACKER => (2, StageKind::Tracker, ViewKind::Mono, "`track`"),
+        KIND_STEREO_DEPTH_ESTIMATOR => (3, StageKind::DepthEstimator, ViewKind::Stereo, "`create_stereo` and `estimate_stereo_depth`"),
+        k => {
+            return Err(library_error(
+                path,
+                format!("plugin `{name}` has unknown kind {k}"),
+                format!(
+                    "use {KIND_PREPROCESSOR} (preprocessor), {KIND_DEPTH_ESTIMATOR} (depth estimator), {KIND_TRACKER} (tracker) or {KIND_STEREO_DEPTH_ESTIMATOR} (stereo depth estimator)"
+                ),
+            ));
+        }
+    };
+    let others = set.iter().enumerate().any(|(i, s)| *s && i != expected) || p.create_stereo.is_some() != p.estimate_stereo_depth.is_some();
+    if !set[expected] || others {
+        return Err(library_error(
+            path,
+            format!("plugin `{name}` declares kind {} but not exactly its stage functions", p.kind),
+            format!("set {needs} for this kind, and no other stage function"),
+        ));
+    }
+    Ok((stage, views))
 }
 
 /// Calls a text function with a buffer big enough for its answer.
@@ -250,6 +269,9 @@ impl ForeignPlugin for LoadedPlugin {
     fn origin(&self) -> &Path {
         &self.library
     }
+    fn views(&self) -> ViewKind {
+        self.views
+    }
 }
 
 impl LoadedPlugin {
@@ -290,45 +312,44 @@ impl LoadedPlugin {
             return Err(BuildError::Params(problems));
         }
         let text = self.params_text(table).map_err(|p| BuildError::Params(vec![p]))?;
-        let cam = env.rig.camera();
-        let k = match cam.distortion {
-            None => [0.0; 5],
-            Some(LensModel::RadialTangential(k)) if k[5..].iter().all(|v| *v == 0.0) => [k[0], k[1], k[2], k[3], k[4]],
-            Some(lens) => {
+        let camera = abi_camera(env.rig.camera())?;
+        let mut state: *mut c_void = std::ptr::null_mut();
+        let mut message = crate::host_stage::Message::new();
+        let rc = match (self.raw.create_stereo, &env.rig) {
+            (Some(create), capsule_slam_framework::camera::Rig::Stereo { right, t_right_left, .. }) => {
+                let r = t_right_left.rotation.to_rotation_matrix();
+                let rig = super::AbiStereoRig {
+                    right: abi_camera(right)?,
+                    rotation: std::array::from_fn(|k| r[(k / 3, k % 3)]),
+                    translation_m: [t_right_left.translation.x, t_right_left.translation.y, t_right_left.translation.z],
+                };
+                // SAFETY: the library's create_stereo, with a NUL-terminated table, both
+                // cameras, a state slot and a message buffer that all outlive the call.
+                unsafe { create(text.as_ptr(), &camera, &rig, &mut state, message.buffer()) }
+            }
+            (Some(_), _) => {
                 return Err(StageError::invalid_input(format!(
-                    "the plugin ABI carries a five-coefficient radial-tangential lens, not this {} one: build the stage with the undistorted rig (input folders are undistorted as they are read)",
-                    lens.name()
+                    "`{}` is a stereo depth estimator: give it a stereo input (rgb_right.txt and camera.toml's [right])",
+                    self.name
                 ))
                 .into());
             }
+            // SAFETY: the library's create, with a NUL-terminated table, a camera, a state slot
+            // and a message buffer that all outlive the call.
+            (None, _) => unsafe { (self.raw.create)(text.as_ptr(), &camera, &mut state, message.buffer()) },
         };
-        let to_u32 = |v: usize| u32::try_from(v).map_err(|_| StageError::invalid_input(format!("the image is too large for the plugin ABI ({v} pixels)")));
-        let camera = AbiCamera {
-            width: to_u32(cam.width)?,
-            height: to_u32(cam.height)?,
-            fx: cam.fx,
-            fy: cam.fy,
-            cx: cam.cx,
-            cy: cam.cy,
-            fov_radius_px: cam.fov_radius_px.unwrap_or(0.0),
-            distortion: k,
-        };
-        let mut state: *mut c_void = std::ptr::null_mut();
-        let mut message = Message::new();
-        // SAFETY: the library's create, with a NUL-terminated table, a camera, a state slot and
-        // a message buffer that all outlive the call.
-        let rc = unsafe { (self.raw.create)(text.as_ptr(), &camera, &mut state, message.buffer()) };
         if rc != OK || state.is_null() {
             return Err(BuildError::Stage(self.error(rc, &message, "creating the stage")));
         }
-        let stage = LibraryStage { plugin: self, state };
+        let stage = crate::host_stage::LibraryStage { plugin: self, state };
         Ok(match self.kind {
             StageKind::Preprocessor => Stage::Preprocessor(Box::new(stage)),
+            StageKind::Tracker => Stage::Tracker(Box::new(stage)),
             _ => Stage::DepthEstimator(Box::new(stage)),
         })
     }
 
-    fn error(&self, rc: i32, message: &Message, doing: &str) -> StageError {
+    pub(crate) fn error(&self, rc: i32, message: &crate::host_stage::Message, doing: &str) -> StageError {
         let what = if rc == PANIC { "panicked" } else { "failed" };
         let text = message.text();
         let text = if text.is_empty() { format!("{doing} {what} (code {rc}, no message)") } else { format!("{doing} {what}: {text}") };
@@ -336,114 +357,27 @@ impl LoadedPlugin {
     }
 }
 
-/// A message buffer for one call.
-struct Message {
-    bytes: Vec<u8>,
-    buf: AbiBuffer,
-}
-
-impl Message {
-    fn new() -> Box<Self> {
-        let mut m = Box::new(Self { bytes: vec![0; MESSAGE_BYTES], buf: AbiBuffer { data: std::ptr::null_mut(), capacity: MESSAGE_BYTES, len: 0 } });
-        m.buf.data = m.bytes.as_mut_ptr();
-        m
-    }
-    fn buffer(&mut self) -> *mut AbiBuffer {
-        &mut self.buf
-    }
-    fn text(&self) -> String {
-        let n = self.buf.len.min(self.buf.capacity);
-        let cut = if self.buf.len > self.buf.capacity { " [...]" } else { "" };
-        format!("{}{cut}", String::from_utf8_lossy(&self.bytes[..n]).trim())
-    }
-}
-
-/// A stage whose code is in a library.
-struct LibraryStage {
-    plugin: &'static LoadedPlugin,
-    state: *mut c_void,
-}
-
-// SAFETY: the ABI requires a state to be usable from any thread, one at a time; the pipeline
-// owns the stage and calls it through `&mut self`, so never from two threads at once.
-unsafe impl Send for LibraryStage {}
-
-impl Drop for LibraryStage {
-    fn drop(&mut self) {
-        // SAFETY: the state came from this plugin's create and is freed once.
-        unsafe { (self.plugin.raw.destroy)(self.state) };
-    }
-}
-
-impl LibraryStage {
-    fn preprocess_fn(&self) -> Result<PreprocessFn, StageError> {
-        self.plugin.raw.preprocess.ok_or_else(|| StageError::invalid_input(format!("`{}` is not a preprocessor", self.plugin.name)))
-    }
-    fn depth_fn(&self) -> Result<DepthFn, StageError> {
-        self.plugin.raw.estimate_depth.ok_or_else(|| StageError::invalid_input(format!("`{}` is not a depth estimator", self.plugin.name)))
-    }
-}
-
-impl Preprocessor for LibraryStage {
-    fn process(&mut self, frame: &mut CameraFrame, _ctx: &mut Context) -> Result<(), StageError> {
-        let f = self.preprocess_fn()?;
-        let mut union: Option<Mask> = None;
-        for view in frame.views.iter_mut() {
-            let (w, h) = view.size();
-            let mut mask = vec![0u8; w * h];
-            let mut image = AbiImage { width: w as u32, height: h as u32, data: view.data_mut().as_mut_ptr() };
-            let mut message = Message::new();
-            // SAFETY: the library's preprocess with its own state, the view's pixels
-            // (3·w·h bytes), a w·h mask and a message buffer, all alive during the call.
-            let rc = unsafe { f(self.state, &mut image, mask.as_mut_ptr(), message.buffer()) };
-            if rc != OK {
-                return Err(self.plugin.error(rc, &message, &format!("frame {}", frame.index)));
-            }
-            if mask.iter().any(|&m| m != 0) {
-                let m = union.get_or_insert_with(|| Mask::new(w, h));
-                if m.size() == (w, h) {
-                    for (o, &v) in m.data_mut().iter_mut().zip(&mask) {
-                        *o |= v != 0;
-                    }
-                }
-            }
+/// A camera as the ABI carries it: a pinhole with at most a five-coefficient lens.
+fn abi_camera(cam: &PinholeCamera) -> Result<AbiCamera, StageError> {
+    let k = match cam.distortion {
+        None => [0.0; 5],
+        Some(LensModel::RadialTangential(k)) if k[5..].iter().all(|v| *v == 0.0) => [k[0], k[1], k[2], k[3], k[4]],
+        Some(lens) => {
+            return Err(StageError::invalid_input(format!(
+                "the plugin ABI carries a five-coefficient radial-tangential lens, not this {} one: build the stage with the undistorted rig (input folders are undistorted as they are read)",
+                lens.name()
+            )));
         }
-        if let Some(m) = union {
-            frame.masks.insert(self.plugin.name, m);
-        }
-        Ok(())
-    }
-}
-
-impl DepthEstimator for LibraryStage {
-    /// The ABI's depth is in metres (`estimate_depth`'s contract).
-    fn metric_scale(&self) -> bool {
-        true
-    }
-
-    fn estimate(&mut self, frame: &CameraFrame, _ctx: &mut Context) -> Result<DepthEstimate, StageError> {
-        let f = self.depth_fn()?;
-        let reference = frame.views.reference();
-        let (w, h) = reference.size();
-        // The ABI's image is mutable for preprocessors; a depth estimator gets a copy.
-        let mut pixels = reference.data().to_vec();
-        let image = AbiImage { width: w as u32, height: h as u32, data: pixels.as_mut_ptr() };
-        let mut depth = DepthMap::new(w, h);
-        let mut message = Message::new();
-        // SAFETY: the library's estimate_depth with its own state, a copy of the pixels, a
-        // w·h depth buffer and a message buffer, all alive during the call.
-        let rc = unsafe { f(self.state, &image, depth.data_mut().as_mut_ptr(), message.buffer()) };
-        if rc != OK {
-            return Err(self.plugin.error(rc, &message, &format!("frame {}", frame.index)));
-        }
-        if let Some(i) = depth.data().iter().position(|d| !d.is_finite() || *d < 0.0) {
-            let (x, y) = (i % w, i / w);
-            let v = depth.data()[i];
-            return Err(StageError::Plugin {
-                name: self.plugin.name.to_owned(),
-                source: format!("frame {}: depth {v} m at pixel ({x}, {y}); depth must be finite and ≥ 0 (0 = invalid)", frame.index).into(),
-            });
-        }
-        Ok(DepthEstimate::depth_only(depth))
-    }
+    };
+    let to_u32 = |v: usize| u32::try_from(v).map_err(|_| StageError::invalid_input(format!("the image is too large for the plugin ABI ({v} pixels)")));
+    Ok(AbiCamera {
+        width: to_u32(cam.width)?,
+        height: to_u32(cam.height)?,
+        fx: cam.fx,
+        fy: cam.fy,
+        cx: cam.cx,
+        cy: cam.cy,
+        fov_radius_px: cam.fov_radius_px.unwrap_or(0.0),
+        distortion: k,
+    })
 }

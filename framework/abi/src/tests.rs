@@ -23,7 +23,7 @@ capsule_slam_framework::plugin_params! {
 }
 
 /// Inverts the image and masks its bright pixels.
-struct Invert {
+pub(crate) struct Invert {
     mask_above: u8,
 }
 
@@ -216,7 +216,7 @@ fn bad_declarations_are_refused_with_the_reason() {
     let list = AbiPluginList::new(table);
     // SAFETY: a valid list.
     let err = unsafe { plugins_of(&list, Path::new("lib.so")) }.unwrap_err().to_string();
-    assert!(err.contains("exactly its one stage function"), "{err}");
+    assert!(err.contains("not exactly its stage functions"), "{err}");
     let mut upper = preprocessor::<Invert>();
     upper.name = c"Test Invert".as_ptr();
     let table: &'static [AbiPlugin] = Box::leak(Box::new([upper]));

@@ -196,6 +196,10 @@ pub trait ForeignPlugin: Send + Sync {
     fn build(&'static self, table: &toml::Table, env: &BuildEnv) -> Result<Stage, BuildError>;
     /// Where its code came from (the library file).
     fn origin(&self) -> &Path;
+    /// The views it needs (a stereo depth estimator: both).
+    fn views(&self) -> ViewKind {
+        ViewKind::Mono
+    }
 }
 
 impl PluginEntry {
@@ -215,7 +219,7 @@ impl PluginEntry {
 
     /// An entry for a plugin whose code lives elsewhere (a shared library).
     pub fn foreign(plugin: &'static dyn ForeignPlugin) -> Self {
-        Self { name: plugin.name(), kind: plugin.kind(), summary: plugin.summary(), views: ViewKind::Mono, source: Source::Foreign(plugin) }
+        Self { name: plugin.name(), kind: plugin.kind(), summary: plugin.summary(), views: plugin.views(), source: Source::Foreign(plugin) }
     }
 
     /// Its parameters' documentation (name, unit, default, range, meaning).

@@ -7,14 +7,18 @@
 //!     --set 'pipeline.preprocess=["example-gamma"]' --set pipeline.depth=example-inverse-square
 //! ```
 //!
+//! `example-depth-centroid` is a tracker (ABI version 2): `--set pipeline.tracker=example-depth-centroid`.
+//!
 //! Copy this crate to start a plugin of your own: one file per plugin, parameters declared
 //! with `plugin_params!` (validated by the host like a linked plugin's), and the list of
 //! exported types in [`export_plugins!`](capsule_slam_abi::export_plugins) below.
 
+mod depth_centroid;
 mod gamma;
 mod inverse_square;
 
+pub use depth_centroid::DepthCentroid;
 pub use gamma::Gamma;
 pub use inverse_square::InverseSquare;
 
-capsule_slam_abi::export_plugins!(preprocessor Gamma, depth_estimator InverseSquare);
+capsule_slam_abi::export_plugins!(preprocessor Gamma, depth_estimator InverseSquare, tracker DepthCentroid);
