@@ -76,15 +76,24 @@ pub fn trajectories(dir: &Path, cells: &[Cell], inputs: &[(String, std::path::Pa
     for (input, input_dir) in inputs {
         let Ok(gt) = read_trajectory(&input_dir.join("groundtruth.txt")) else { continue };
         let mm = |p: &nalgebra::Vector3<f64>| (p.x * 1e3, p.y * 1e3);
-        let gt_xy: Vec<(f64, f64)> = gt.iter().map(|p| mm(&p.t_world_cam.translation.vector)).collect();
         let mut series = Vec::new();
+        // The truth over the time the runs cover (a run of part of a sequence).
+        let (mut t0, mut t1) = (f64::MAX, f64::MIN);
         for c in cells.iter().filter(|c| &c.input == input) {
             let Ok(est) = read_trajectory(&c.out.join("trajectory.txt")) else { continue };
+            if let (Some(a), Some(b)) = (est.first(), est.last()) {
+                (t0, t1) = (t0.min(a.timestamp_s), t1.max(b.timestamp_s));
+            }
             let metric = c.summary().is_none_or(|s| s["metric_scale"] != false);
             let Some(align) = align_trajectory(&est, &gt, tolerance_s, !metric) else { continue };
             let xy: Vec<(f64, f64)> = associate(&est, &gt, tolerance_s).iter().map(|(e, _)| mm(&align.apply_pose(&e.t_world_cam).translation.vector)).collect();
             series.push((c.variant.clone(), xy));
         }
+        let gt_xy: Vec<(f64, f64)> = gt
+            .iter()
+            .filter(|p| p.timestamp_s >= t0 - tolerance_s && p.timestamp_s <= t1 + tolerance_s)
+            .map(|p| mm(&p.t_world_cam.translation.vector))
+            .collect();
         if series.is_empty() || gt_xy.is_empty() {
             continue;
         }
