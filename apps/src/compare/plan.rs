@@ -67,6 +67,8 @@ pub struct SynthSpec {
     pub stereo: Option<f64>,
     /// Image size: naneye, 320 (default), voyager or potensic.
     pub size: Option<String>,
+    /// With a wave, the true surface every this many frames too (the live surface error).
+    pub surface_every: Option<usize>,
 }
 
 /// One swept parameter.
@@ -101,6 +103,7 @@ impl SynthSpec {
         spec.seed = self.seed.unwrap_or(spec.seed);
         spec.repeat = self.repeat.unwrap_or(spec.repeat);
         spec.stereo_baseline_mm = self.stereo.or(spec.stereo_baseline_mm);
+        spec.surface_every = self.surface_every.unwrap_or(spec.surface_every);
         if let Some(size) = self.size.as_deref().and_then(capsule_slam_phantom::SizePreset::parse) {
             spec.size = size;
         }
@@ -122,6 +125,9 @@ impl SynthSpec {
         }
         if let Some(size) = &self.size {
             name += &format!("-{size}");
+        }
+        if let Some(n) = self.surface_every.filter(|n| *n > 0) {
+            name += &format!("-surface{n}");
         }
         safe_name(&name)
     }
