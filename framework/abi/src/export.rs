@@ -1,6 +1,7 @@
 //! The plugin side of the C ABI, for plugins written in Rust: implement
-//! [`LibraryPreprocessor`], [`LibraryDepthEstimator`], [`LibraryStereoDepthEstimator`] or
-//! [`LibraryTracker`], then list the types once in the library's `lib.rs`:
+//! [`LibraryPreprocessor`], [`LibraryDepthEstimator`], or (ABI version 2, in
+//! [`export_v2`](crate::export_v2)) `LibraryStereoDepthEstimator` or `LibraryTracker`, then list
+//! the types once in the library's `lib.rs`:
 //!
 //! ```ignore
 //! capsule_slam_abi::export_plugins!(preprocessor MyGamma, depth_estimator MyDepth,
@@ -22,7 +23,6 @@ use super::{AbiBuffer, AbiCamera, AbiImage, AbiPlugin, ERROR, KIND_DEPTH_ESTIMAT
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::image::{DepthMap, Mask, Rgb8};
 
-pub use super::export_v2::{LibraryStereoDepthEstimator, LibraryTracker, ModelImages, TrackInput, TrackOutput, stereo_depth_estimator, tracker};
 use capsule_slam_framework::params::{PluginParams, parse_params};
 
 /// A stage built by a library.
@@ -86,11 +86,30 @@ pub const fn depth_estimator<T: LibraryDepthEstimator>() -> AbiPlugin {
     }
 }
 
-/// Exports a library's plugins: `export_plugins!(preprocessor A, depth_estimator B, ...)`.
+/// The table entry of one plugin of [`export_plugins!`](crate::export_plugins) by its kind.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! plugin_entry {
+    (preprocessor $ty:ty) => {
+        $crate::export::preprocessor::<$ty>()
+    };
+    (depth_estimator $ty:ty) => {
+        $crate::export::depth_estimator::<$ty>()
+    };
+    (tracker $ty:ty) => {
+        $crate::export_v2::tracker::<$ty>()
+    };
+    (stereo_depth_estimator $ty:ty) => {
+        $crate::export_v2::stereo_depth_estimator::<$ty>()
+    };
+}
+
+/// Exports a library's plugins: `export_plugins!(preprocessor A, depth_estimator B,
+/// tracker C, stereo_depth_estimator D, ...)`.
 #[macro_export]
 macro_rules! export_plugins {
     ($($kind:ident $ty:ty),+ $(,)?) => {
-        static CAPSULE_SLAM_PLUGIN_TABLE: &[$crate::AbiPlugin] = &[$($crate::export::$kind::<$ty>()),+];
+        static CAPSULE_SLAM_PLUGIN_TABLE: &[$crate::AbiPlugin] = &[$($crate::plugin_entry!($kind $ty)),+];
         static CAPSULE_SLAM_PLUGIN_LIST: $crate::AbiPluginList = $crate::AbiPluginList::new(CAPSULE_SLAM_PLUGIN_TABLE);
         /// The entry point of the C ABI ([`capsule_slam_framework::abi::ENTRY_SYMBOL`]).
         #[allow(unsafe_code)]

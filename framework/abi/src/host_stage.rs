@@ -4,8 +4,9 @@
 
 use std::ffi::c_void;
 
-use super::load::LoadedPlugin;
-use super::{AbiBuffer, AbiImage, AbiTrackInput, AbiTrackOutput, DepthFn, OK, PreprocessFn, StereoDepthFn, TrackFn};
+use super::{AbiBuffer, AbiImage, AbiPlugin, AbiTrackInput, AbiTrackOutput, DepthFn, OK, PreprocessFn, StereoDepthFn, TrackFn};
+use std::path::PathBuf;
+
 use capsule_slam_framework::camera::ViewKind;
 use capsule_slam_framework::context::Context;
 use capsule_slam_framework::error::StageError;
@@ -13,7 +14,36 @@ use capsule_slam_framework::frame::{CameraFrame, RgbdFrame, Views};
 use capsule_slam_framework::geometry::Iso3;
 use capsule_slam_framework::image::{DepthMap, Mask, Rgb8};
 use capsule_slam_framework::map::ModelView;
+use capsule_slam_framework::params::ParamDoc;
+use capsule_slam_framework::registry::StageKind;
 use capsule_slam_framework::stage::{DepthEstimate, DepthEstimator, Preprocessor, TrackResult, TrackStatus, Tracker};
+
+/// A plugin loaded from a library. Lives for the whole process, as its library does.
+#[derive(Debug)]
+pub struct LoadedPlugin {
+    /// Registry name.
+    pub name: &'static str,
+    /// One line on what it does.
+    pub summary: &'static str,
+    /// Its stage.
+    pub kind: StageKind,
+    /// Its parameters.
+    pub params: Vec<ParamDoc>,
+    /// The views it needs (a stereo depth estimator: both).
+    pub views: ViewKind,
+    /// The library file.
+    pub library: PathBuf,
+    /// The ABI version of its library.
+    pub abi_version: u32,
+    pub(crate) raw: AbiPlugin,
+}
+
+// SAFETY: `raw` holds pointers to the library's immutable static strings and its functions;
+// the library is never unloaded, and the ABI requires its functions to be callable from any
+// thread (a stage's state is used by one thread at a time: see `LibraryStage`).
+unsafe impl Send for LoadedPlugin {}
+// SAFETY: as above; nothing in it is ever written after loading.
+unsafe impl Sync for LoadedPlugin {}
 
 /// Size of the buffer for a stage's error message, bytes (a longer message is cut).
 const MESSAGE_BYTES: usize = 4096;

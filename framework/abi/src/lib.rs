@@ -20,13 +20,13 @@
 //! out: [`ParamDocsToml`], [`ProblemsToml`]), so validation reports a library plugin's
 //! problems exactly like a linked one's. A plugin written in Rust needs none of this by hand:
 //! implement [`export::LibraryPreprocessor`], [`export::LibraryDepthEstimator`],
-//! [`export::LibraryStereoDepthEstimator`] or [`export::LibraryTracker`] and list the types in [`export_plugins!`](crate::export_plugins) (`plugins/dylib-example/` is a
+//! [`export_v2::LibraryStereoDepthEstimator`] or [`export_v2::LibraryTracker`] and list the types in [`export_plugins!`](crate::export_plugins) (`plugins/dylib-example/` is a
 //! complete one).
 
 use std::ffi::{c_char, c_void};
 
 pub mod export;
-mod export_v2;
+pub mod export_v2;
 mod host_stage;
 pub mod load;
 

@@ -4,12 +4,13 @@
 #![allow(unsafe_code)]
 
 use std::ffi::{CStr, CString, c_char, c_void};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use super::{
     ABI_VERSION, ABI_VERSION_MIN, AbiBuffer, AbiCamera, AbiPlugin, AbiPluginList, AbiPluginV1, ENTRY_SYMBOL, EntryFn, KIND_DEPTH_ESTIMATOR, KIND_PREPROCESSOR,
     KIND_STEREO_DEPTH_ESTIMATOR, KIND_TRACKER, OK, PANIC, ParamDocsToml, ProblemsToml,
 };
+use crate::host_stage::{LibraryStage, Message};
 use capsule_slam_framework::camera::{PinholeCamera, ViewKind};
 use capsule_slam_framework::error::{ConfigProblem, RegistryError, StageError};
 use capsule_slam_framework::lens::LensModel;
@@ -19,32 +20,7 @@ use capsule_slam_framework::registry::{BuildEnv, BuildError, ForeignPlugin, Plug
 /// Largest text (parameter docs, problems) the host accepts from a library, bytes.
 const MAX_TEXT_BYTES: usize = 1 << 20;
 
-/// A plugin loaded from a library. Lives for the whole process, as its library does.
-#[derive(Debug)]
-pub struct LoadedPlugin {
-    /// Registry name.
-    pub name: &'static str,
-    /// One line on what it does.
-    pub summary: &'static str,
-    /// Its stage.
-    pub kind: StageKind,
-    /// Its parameters.
-    pub params: Vec<ParamDoc>,
-    /// The views it needs (a stereo depth estimator: both).
-    pub views: ViewKind,
-    /// The library file.
-    pub library: PathBuf,
-    /// The ABI version of its library.
-    pub abi_version: u32,
-    pub(crate) raw: AbiPlugin,
-}
-
-// SAFETY: `raw` holds pointers to the library's immutable static strings and its functions;
-// the library is never unloaded, and the ABI requires its functions to be callable from any
-// thread (a stage's state is used by one thread at a time: see `LibraryStage`).
-unsafe impl Send for LoadedPlugin {}
-// SAFETY: as above; nothing in it is ever written after loading.
-unsafe impl Sync for LoadedPlugin {}
+pub use crate::host_stage::LoadedPlugin;
 
 fn library_error(path: &Path, message: impl Into<String>, fix: impl Into<String>) -> RegistryError {
     RegistryError::Library { path: path.to_path_buf(), message: message.into(), fix: fix.into() }
@@ -314,7 +290,7 @@ impl LoadedPlugin {
         let text = self.params_text(table).map_err(|p| BuildError::Params(vec![p]))?;
         let camera = abi_camera(env.rig.camera())?;
         let mut state: *mut c_void = std::ptr::null_mut();
-        let mut message = crate::host_stage::Message::new();
+        let mut message = Message::new();
         let rc = match (self.raw.create_stereo, &env.rig) {
             (Some(create), capsule_slam_framework::camera::Rig::Stereo { right, t_right_left, .. }) => {
                 let r = t_right_left.rotation.to_rotation_matrix();
@@ -341,7 +317,7 @@ impl LoadedPlugin {
         if rc != OK || state.is_null() {
             return Err(BuildError::Stage(self.error(rc, &message, "creating the stage")));
         }
-        let stage = crate::host_stage::LibraryStage { plugin: self, state };
+        let stage = LibraryStage { plugin: self, state };
         Ok(match self.kind {
             StageKind::Preprocessor => Stage::Preprocessor(Box::new(stage)),
             StageKind::Tracker => Stage::Tracker(Box::new(stage)),
@@ -349,7 +325,7 @@ impl LoadedPlugin {
         })
     }
 
-    pub(crate) fn error(&self, rc: i32, message: &crate::host_stage::Message, doing: &str) -> StageError {
+    pub(crate) fn error(&self, rc: i32, message: &Message, doing: &str) -> StageError {
         let what = if rc == PANIC { "panicked" } else { "failed" };
         let text = message.text();
         let text = if text.is_empty() { format!("{doing} {what} (code {rc}, no message)") } else { format!("{doing} {what}: {text}") };

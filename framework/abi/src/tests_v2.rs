@@ -5,7 +5,8 @@
 
 use std::path::Path;
 
-use super::export::{LibraryPlugin, LibraryStereoDepthEstimator, LibraryTracker, TrackInput, TrackOutput, preprocessor, stereo_depth_estimator, tracker};
+use super::export::{LibraryPlugin, preprocessor};
+use super::export_v2::{LibraryStereoDepthEstimator, LibraryTracker, TrackInput, TrackOutput, stereo_depth_estimator, tracker};
 use super::load::{list_of, plugins_of};
 use super::*;
 use capsule_slam_framework::camera::{PinholeCamera, Rig, ViewKind};

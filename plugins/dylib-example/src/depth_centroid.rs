@@ -7,7 +7,8 @@
 //! is the last frame it tracked (its own state: a library stage keeps what it likes).
 //! Rotation and sideways motion are not seen: a baseline to beat, not a tracker to use.
 
-use capsule_slam_abi::export::{LibraryPlugin, LibraryTracker, TrackInput, TrackOutput};
+use capsule_slam_abi::export::LibraryPlugin;
+use capsule_slam_abi::export_v2::{LibraryTracker, TrackInput, TrackOutput};
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::geometry::Iso3;
 
@@ -68,7 +69,7 @@ impl LibraryTracker for DepthCentroid {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use capsule_slam_abi::export::ModelImages;
+    use capsule_slam_abi::export_v2::ModelImages;
     use capsule_slam_framework::image::{DepthMap, Image, Rgb8};
 
     fn input(model_z: f32, frame_z: f32) -> TrackInput {
