@@ -13,7 +13,7 @@ use capsule_slam_framework::{Registry, StageKind};
 use capsule_slam_io::Dataset;
 use capsule_slam_phantom::PhantomSpec;
 use capsule_slam_phantom::writer::is_complete;
-use capsule_slam_run::{RunOptions, run as run_pipeline};
+use capsule_slam_run::{RunOptions, run_observed};
 use capsule_slam_run::{RunWriter, Summary};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -50,6 +50,9 @@ pub struct RunArgs {
     /// previous run's outputs are always replaced).
     #[arg(long)]
     force: bool,
+    /// The recording for the rerun viewer.
+    #[command(flatten)]
+    record: crate::run_record::RecordArgs,
 }
 
 /// The oracle that stands in for a default stage whose real plugin is not in this build.
@@ -142,6 +145,7 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     }
     let env = BuildEnv::new(dataset.rig(), Some(input.clone())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let mut pipeline = Pipeline::build(&config, &source, &registry, &env)?;
+    crate::run_record::Recording::check(&args.record)?;
     let out = config.output.dir.clone();
     let mut writer = RunWriter::create_with(&out, &pipeline.resolved_config().to_toml_string(), args.force)
         .with_context(|| format!("creating the output folder {}", out.display()))?;
@@ -151,13 +155,23 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
     let opts =
         RunOptions { max_frames: config.input.max_frames, write_map: config.output.map, eval_sim3: false, closure_report: args.closure_report, build: BUILD };
-    let result = run_pipeline(&dataset, &mut pipeline, &mut writer, &opts, |rec| {
+    let mut recording = crate::run_record::Recording::open(&args.record, dataset.ground_truth())?;
+    pipeline.keep_last_frame(recording.as_ref().is_some_and(|r| r.wants_frames()));
+    let result = run_observed(&dataset, &mut pipeline, &mut writer, &opts, |rec, pipeline| {
         for w in rec.warnings() {
             bar.suspend(|| eprintln!("warning: frame {}: {w}", rec.index));
+        }
+        if let Some(r) = recording.as_mut() {
+            r.observe(rec, pipeline);
         }
         bar.inc(1);
     });
     bar.finish_and_clear();
+    // The recording is completed whether or not the run was (it shows where a run failed).
+    let recorded = recording.map(|r| r.finish(&pipeline)).transpose().unwrap_or_else(|e| {
+        eprintln!("warning: {e:#}");
+        None
+    });
     let ended = if matches!(result, Err(capsule_slam_framework::PipelineError::NoResult(_))) {
         "run failed; what it wrote is"
     } else {
@@ -174,6 +188,9 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
             Ok(n) => println!("plots             {n} in {}", dir.display()),
             Err(e) => eprintln!("warning: the plots were not written: {e:#}"),
         }
+    }
+    if let Some(path) = recorded {
+        println!("recording         {} (open it with `rerun {}`)", path.display(), path.display());
     }
     println!("outputs           {}", out.display());
     Ok(())

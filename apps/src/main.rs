@@ -16,6 +16,7 @@ mod cmd_synth;
 mod compare;
 mod plot;
 mod run_plots;
+mod run_record;
 mod stages;
 
 use clap::{Parser, Subcommand};

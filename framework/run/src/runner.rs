@@ -42,6 +42,18 @@ pub fn run(
     opts: &RunOptions,
     mut on_frame: impl FnMut(&FrameRecord),
 ) -> Result<Summary, PipelineError> {
+    run_observed(dataset, pipeline, writer, opts, |rec, _| on_frame(rec))
+}
+
+/// [`run`], with the pipeline (its state after the frame: trajectory, prediction, map, the
+/// last frame if kept) shown to `on_frame` after each frame.
+pub fn run_observed(
+    dataset: &Dataset,
+    pipeline: &mut Pipeline,
+    writer: &mut RunWriter,
+    opts: &RunOptions,
+    mut on_frame: impl FnMut(&FrameRecord, &Pipeline),
+) -> Result<Summary, PipelineError> {
     let n = opts.max_frames.map_or(dataset.len(), |m| m.min(dataset.len()));
     let mut records = Vec::with_capacity(n);
     let mut counters = CounterSums::default();
@@ -68,7 +80,7 @@ pub fn run(
                     writer.write_closure(i, &b, &a)?;
                 }
                 writer.write_frame(&frame_row(&rec))?;
-                on_frame(&rec);
+                on_frame(&rec, pipeline);
                 counters.add(&rec); // the reports are written (`counters.jsonl`) and summed
                 records.push(FrameRecord { reports: Default::default(), ..rec });
             }

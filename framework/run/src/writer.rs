@@ -28,6 +28,12 @@ pub const RUN_OUTPUTS: [&str; 8] =
 /// The folder of a run's pictures (written by the command line, `out/plots/`).
 pub const PLOTS_DIR: &str = "plots";
 
+/// Whether `name` is a recording `run --record` writes (a rerun `.rrd` file; the command line
+/// may put it into the output folder, and a rerun of the same command replaces it).
+pub fn is_run_recording(name: &str) -> bool {
+    name.ends_with(".rrd")
+}
+
 /// Whether `name` is a picture a run writes into [`PLOTS_DIR`].
 fn is_run_plot(name: &str) -> bool {
     name.ends_with(".png") && ["map_", "trajectory_", "ate_over_time"].iter().any(|p| name.starts_with(p))
@@ -75,7 +81,8 @@ pub const FRAMES_CSV_HEADER: &str = "frame,timestamp_s,status,ms_preprocess,ms_d
 impl RunWriter {
     /// Creates the folder and writes `config.toml`; opens the streamed files.
     ///
-    /// The folder must hold nothing but a previous run's outputs ([`RUN_OUTPUTS`]), which go
+    /// The folder must hold nothing but a previous run's outputs ([`RUN_OUTPUTS`], its plots
+    /// and recordings), which go
     /// first: a run that fails early or is killed never leaves an older run's map and summary
     /// beside its own files (a killed run leaves no `summary.json`). A folder that holds other
     /// files is refused (the error names one), unless `force`, which keeps them.
@@ -90,7 +97,8 @@ impl RunWriter {
         let mut names: Vec<String> = entries.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
         names.sort();
         let plots = previous_plots(dir);
-        let foreign = names.iter().find(|n| !RUN_OUTPUTS.contains(&n.as_str()) && n.as_str() != PLOTS_DIR).cloned().or(plots.as_ref().err().cloned());
+        let ours = |n: &str| RUN_OUTPUTS.contains(&n) || is_run_recording(n);
+        let foreign = names.iter().find(|n| !ours(n) && n.as_str() != PLOTS_DIR).cloned().or(plots.as_ref().err().cloned());
         if let Some(other) = foreign.filter(|_| !force) {
             return Err(LoadError::parse(
                 dir,
@@ -98,7 +106,7 @@ impl RunWriter {
                 format!("the output folder holds `{other}`, which a run does not write; choose an empty or new --out, or pass --force to write beside it"),
             ));
         }
-        for name in names.iter().filter(|n| RUN_OUTPUTS.contains(&n.as_str())) {
+        for name in names.iter().filter(|n| ours(n)) {
             let p = dir.join(name);
             std::fs::remove_file(&p).map_err(|e| LoadError::io(&p, e))?;
         }

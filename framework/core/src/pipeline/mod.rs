@@ -54,6 +54,18 @@ pub struct Pipeline {
     prediction: Option<ModelView>,
     trajectory: Vec<StampedPose>,
     loop_closures: usize,
+    keep_last: bool,
+    /// The last frame, kept for an observer when asked ([`Pipeline::keep_last_frame`]).
+    last: Option<LastFrame>,
+}
+
+/// The last processed frame as the stages saw it, kept for an observer (a recording of the
+/// run) when [`Pipeline::keep_last_frame`] asked for it.
+pub struct LastFrame {
+    /// The reference view's image as it came in, before the preprocessors.
+    pub input: crate::image::Rgb8,
+    /// The frame after the preprocessors and the depth stage (its image, depth and masks).
+    pub frame: RgbdFrame,
 }
 
 fn ms_since(t: Instant) -> f64 {
@@ -139,7 +151,35 @@ impl Pipeline {
             prediction: None,
             trajectory: Vec::new(),
             loop_closures: 0,
+            keep_last: false,
+            last: None,
         }
+    }
+
+    /// Keeps the last processed frame (its input image, and the frame after the preprocessors
+    /// and the depth stage) for [`Pipeline::last_frame`]: one image copy per frame. Off by
+    /// default.
+    pub fn keep_last_frame(&mut self, keep: bool) {
+        if !keep {
+            self.last = None;
+        }
+        self.keep_last = keep;
+    }
+
+    /// The last processed frame, when [`Pipeline::keep_last_frame`] is on.
+    pub fn last_frame(&self) -> Option<&LastFrame> {
+        self.last.as_ref()
+    }
+
+    /// The active model predicted at the last trusted pose (what the next frame is tracked
+    /// against), once a frame was fused.
+    pub fn prediction(&self) -> Option<&ModelView> {
+        self.prediction.as_ref()
+    }
+
+    /// The camera rig.
+    pub fn rig(&self) -> &Rig {
+        &self.rig
     }
 
     /// The resolved configuration (defaults of every selected plugin filled in).
@@ -186,6 +226,7 @@ impl Pipeline {
         if matches!((&self.rig, &frame.views), (Rig::Stereo { .. }, Views::Mono(_))) {
             return Err(stage_err(frame.index, "input", StageError::invalid_input("the rig is stereo but the frame has one view")));
         }
+        let input = self.keep_last.then(|| frame.views.reference().clone());
         self.preprocess(&mut frame, &mut rec)?;
         let rgbd = self.estimate_depth(frame, &mut rec)?;
         let tr = self.track(&rgbd, &mut rec)?;
@@ -201,6 +242,7 @@ impl Pipeline {
         rec.map = self.stages.fuser.1.stats();
         self.trajectory.push(StampedPose { timestamp_s: rgbd.timestamp_s, t_world_cam: pose });
         rec.total_ms = ms_since(start);
+        self.last = input.map(|input| LastFrame { input, frame: rgbd });
         Ok(rec)
     }
 

@@ -76,7 +76,8 @@ pub struct FrameRecord {
 }
 
 impl FrameRecord {
-    pub(crate) fn new(index: usize, timestamp_s: f64) -> Self {
+    /// The record of frame `index` before any stage ran (tracked, at the identity, no figures).
+    pub fn new(index: usize, timestamp_s: f64) -> Self {
         Self {
             index,
             timestamp_s,
