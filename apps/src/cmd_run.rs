@@ -167,8 +167,11 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
         bar.inc(1);
     });
     bar.finish_and_clear();
-    // The recording is completed whether or not the run was (it shows where a run failed).
-    let recorded = recording.map(|r| r.finish(&pipeline)).transpose().unwrap_or_else(|e| {
+    // One snapshot of the final map for the plots and the recording (the runner's own went
+    // into map.ply and the evaluation). The recording is completed whether or not the run was
+    // (it shows where a run failed).
+    let map = (!args.no_plots || recording.is_some()).then(|| pipeline.snapshot().ok()).flatten();
+    let recorded = recording.map(|r| r.finish(pipeline.trajectory(), map.as_ref())).transpose().unwrap_or_else(|e| {
         eprintln!("warning: {e:#}");
         None
     });
@@ -182,7 +185,6 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     print_summary(&summary, pipeline.depth_source());
     if !args.no_plots {
         let dir = out.join(capsule_slam_run::writer::PLOTS_DIR);
-        let map = pipeline.snapshot().ok();
         let tolerance = config.input.association_tolerance_s;
         match crate::run_plots::write(&dir, pipeline.trajectory(), dataset.ground_truth(), tolerance, !summary.metric_scale, map.as_ref()) {
             Ok(n) => println!("plots             {n} in {}", dir.display()),

@@ -3,6 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use capsule_slam_framework::geometry::StampedPose;
+use capsule_slam_framework::map::SurfelSet;
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 
 /// The recording's command-line options.
@@ -10,11 +12,11 @@ use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 pub struct RecordArgs {
     /// Write a recording of the run for the rerun viewer (open it with `rerun FILE.rrd`): per
     /// frame the input image, the preprocessed image, the depth, the model's predicted depth
-    /// and colour, the pose and figures; the trajectory and the surfel map every
+    /// and colour, the pose, the trajectory and figures; the surfel map every
     /// --record-map-every frames. Needs a build with `--features record`.
     #[arg(long, value_name = "FILE.rrd")]
     pub record: Option<PathBuf>,
-    /// The map and the trajectory in the recording every this many frames (0: at the end only).
+    /// The map in the recording every this many frames (0: at the end only).
     #[arg(long, value_name = "N", default_value_t = 30)]
     pub record_map_every: usize,
     /// At most this many surfels per recorded map (every k-th surfel).
@@ -48,14 +50,14 @@ impl Recording {
     }
 
     /// Opens the recording `args` asks for (none without `--record`), after [`Recording::check`].
-    pub fn open(args: &RecordArgs, ground_truth: &[capsule_slam_framework::geometry::StampedPose]) -> anyhow::Result<Option<Self>> {
+    pub fn open(args: &RecordArgs, ground_truth: &[StampedPose]) -> anyhow::Result<Option<Self>> {
         Self::check(args)?;
         let Some(path) = &args.record else { return Ok(None) };
         Self::create(args, path, ground_truth).map(Some)
     }
 
     #[cfg(feature = "record")]
-    fn create(args: &RecordArgs, path: &Path, ground_truth: &[capsule_slam_framework::geometry::StampedPose]) -> anyhow::Result<Self> {
+    fn create(args: &RecordArgs, path: &Path, ground_truth: &[StampedPose]) -> anyhow::Result<Self> {
         let options = capsule_slam_record::RecordOptions { map_every: args.record_map_every, max_map_points: args.record_max_points };
         let recorder = capsule_slam_record::Recorder::create(path, options)?;
         recorder.log_ground_truth(ground_truth)?;
@@ -63,7 +65,7 @@ impl Recording {
     }
 
     #[cfg(not(feature = "record"))]
-    fn create(_: &RecordArgs, path: &Path, _: &[capsule_slam_framework::geometry::StampedPose]) -> anyhow::Result<Self> {
+    fn create(_: &RecordArgs, path: &Path, _: &[StampedPose]) -> anyhow::Result<Self> {
         Ok(Self { path: path.to_owned(), stopped: Some("this build has no `record` feature".into()) })
     }
 
@@ -96,21 +98,20 @@ impl Recording {
     #[cfg(not(feature = "record"))]
     pub fn observe(&mut self, _: &FrameRecord, _: &Pipeline) {}
 
-    /// Logs the final trajectory and map at the last frame and completes the file.
+    /// Logs the final trajectory and map (the run's last snapshot) at the last frame and
+    /// completes the file.
     #[cfg(feature = "record")]
-    pub fn finish(mut self, pipeline: &Pipeline) -> anyhow::Result<PathBuf> {
+    pub fn finish(mut self, trajectory: &[StampedPose], map: Option<&SurfelSet>) -> anyhow::Result<PathBuf> {
         if let Some(why) = self.stopped.take() {
             anyhow::bail!("the recording {} is incomplete: {why}", self.path.display());
         }
         let Some(recorder) = self.recorder.take() else { anyhow::bail!("the recording {} was not opened", self.path.display()) };
-        let last = pipeline.trajectory().len().saturating_sub(1);
-        let map = pipeline.snapshot().ok();
-        Ok(recorder.finish(last, pipeline.trajectory(), map.as_ref())?)
+        Ok(recorder.finish(trajectory.len().saturating_sub(1), trajectory, map)?)
     }
 
     /// Without the `record` feature there is never an open recording.
     #[cfg(not(feature = "record"))]
-    pub fn finish(self, _: &Pipeline) -> anyhow::Result<PathBuf> {
+    pub fn finish(self, _: &[StampedPose], _: Option<&SurfelSet>) -> anyhow::Result<PathBuf> {
         anyhow::bail!("the recording {} was not opened (this build has no `record` feature)", self.path.display())
     }
 }

@@ -54,7 +54,7 @@ fn record_writes_every_frame_the_maps_and_the_trajectories_and_a_rerun_replaces_
     assert_eq!(rows("world/camera/image/predicted_colour"), tracked, "{c:?}");
     assert_eq!(rows("world/camera/image"), 1, "the pinhole, once");
     assert_eq!(rows("world/map"), 4, "frames 0, 3, 6 and the end");
-    assert_eq!(rows("world/trajectory/estimated"), 4);
+    assert_eq!(rows("world/trajectory/estimated"), 9, "every frame and the end");
     assert_eq!(rows("world/trajectory/ground_truth"), 1);
     // The recording does not change the run: the same trajectory without it.
     let with = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();

@@ -1,9 +1,9 @@
 //! A run's recording for the [rerun](https://rerun.io) viewer: an `.rrd` file (file sink only,
 //! no viewer and no network) with, per frame, the input image, the image after the
-//! preprocessors, the estimated depth, the model's predicted depth and colour, the camera pose
-//! and a few per-frame figures; every `map_every` frames the estimated trajectory and the surfel
-//! map (decimated); the ground-truth trajectory once. Open it with `rerun out.rrd` (the viewer:
-//! `pip install rerun-sdk==0.36.3`, or `cargo install rerun-cli --version 0.36.3`).
+//! preprocessors, the estimated depth, the model's predicted depth and colour, the camera pose,
+//! the estimated trajectory so far and a few per-frame figures; every `map_every` frames the
+//! surfel map (decimated); the ground-truth trajectory once. Open it with `rerun out.rrd` (the viewer:
+//! `pip install rerun-sdk==0.36.3`, which works on this project's machines).
 //!
 //! Entities (the camera looks along +z, x right, y down, as every camera of this framework):
 //!
@@ -14,7 +14,7 @@
 //! | `world/camera/image/{input, preprocessed}` | the image before and after the preprocessors | every frame |
 //! | `world/camera/image/depth` | the depth the tracker and the fuser used (16 bits, 0.1 mm steps) | every frame |
 //! | `world/camera/image/predicted_{depth, colour}` | the active model rendered at the frame's pose (what the next frame is tracked against) | every frame that was fused |
-//! | `world/trajectory/{estimated, ground_truth}` | camera positions, metres | every `map_every` frames and at the end / once |
+//! | `world/trajectory/{estimated, ground_truth}` | camera positions, metres | every frame and at the end / once |
 //! | `world/map` | surfels (position, colour, radius), at most `max_map_points` | every `map_every` frames and at the end |
 //! | `metrics/*` | ms per frame, surfels, tracker residual (mm), warp (mm) | every frame |
 //! | `log` | the stages' warnings | when there are some |
@@ -75,8 +75,7 @@ pub enum RecordError {
 /// How much is recorded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RecordOptions {
-    /// The map and the estimated trajectory every this many frames (and at the end); 0: only
-    /// at the end.
+    /// The map every this many frames (and at the end); 0: only at the end.
     pub map_every: usize,
     /// At most this many surfels per map (every k-th surfel of the map's canonical order).
     pub max_map_points: usize,
@@ -169,9 +168,9 @@ impl Recorder {
             self.log("world/camera/image/predicted_depth", &convert::depth(&p.depth_m))?;
             self.log("world/camera/image/predicted_colour", &convert::rgb(&p.colour))?;
         }
+        self.log("world/trajectory/estimated", &convert::strip(step.trajectory, [230, 120, 30]))?;
         self.log_figures(rec)?;
         if self.options.map_every > 0 && rec.index.is_multiple_of(self.options.map_every) {
-            self.log("world/trajectory/estimated", &convert::strip(step.trajectory, [230, 120, 30]))?;
             if let Some(m) = map() {
                 self.log("world/map", &convert::surfels(&m, self.options.max_map_points))?;
             }

@@ -63,7 +63,7 @@ fn every_entity_is_logged_as_often_as_asked_and_reads_back() {
     assert_eq!(rows("world/camera/image/predicted_colour"), 6);
     assert_eq!(rows("world/camera/image/depth"), 0, "no frame was kept");
     assert_eq!(rows("world/map"), 4, "frames 0, 4, 8 and the end");
-    assert_eq!(rows("world/trajectory/estimated"), 4);
+    assert_eq!(rows("world/trajectory/estimated"), 11, "every frame and the end");
     assert_eq!(rows("world/trajectory/ground_truth"), 1);
     assert_eq!(rows("metrics/ms_per_frame"), 10);
     assert_eq!(rows("metrics/warp_mean_mm"), 0, "no warp was reported");
