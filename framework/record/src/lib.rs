@@ -170,10 +170,11 @@ impl Recorder {
         }
         self.log("world/trajectory/estimated", &convert::strip(step.trajectory, [230, 120, 30]))?;
         self.log_figures(rec)?;
-        if self.options.map_every > 0 && rec.index.is_multiple_of(self.options.map_every) {
-            if let Some(m) = map() {
-                self.log("world/map", &convert::surfels(&m, self.options.max_map_points))?;
-            }
+        if self.options.map_every > 0
+            && rec.index.is_multiple_of(self.options.map_every)
+            && let Some(m) = map()
+        {
+            self.log("world/map", &convert::surfels(&m, self.options.max_map_points))?;
         }
         Ok(())
     }
