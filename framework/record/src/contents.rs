@@ -7,7 +7,7 @@ use std::path::Path;
 use rerun::external::re_log_encoding::DecoderApp;
 use rerun::log::{Chunk, LogMsg};
 
-use crate::RecordError;
+use crate::error::RecordError;
 
 /// A recording's entities (paths as rerun prints them, e.g. `/world/camera`) and their rows.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
