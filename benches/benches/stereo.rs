@@ -23,6 +23,7 @@ fn stereo(c: &mut Criterion) {
         depth_m: None,
         gt_t_world_cam: None,
         masks: Masks::new(),
+        right_masks: Masks::new(),
         photometry: Photometry::default(),
     };
     let mut est = StereoSgm::build(StereoSgmParams::default(), &BuildEnv::new(rig.clone(), None)).unwrap_or_else(|e| panic!("{e}"));

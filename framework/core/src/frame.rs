@@ -159,8 +159,13 @@ pub struct CameraFrame {
     pub depth_m: Option<DepthMap>,
     /// Ground-truth camera pose, if the input has it.
     pub gt_t_world_cam: Option<Iso3>,
-    /// Masks of pixels to ignore.
+    /// Masks of pixels to ignore, in the reference (mono or left) view's pixels: what every
+    /// stage after depth estimation reads.
     pub masks: Masks,
+    /// Masks of the right view of a stereo pair, in its own pixels (e.g. its highlights, which a
+    /// light beside the lenses puts elsewhere than the left's); empty for a mono frame. A stereo
+    /// depth estimator ignores these pixels of the right view.
+    pub right_masks: Masks,
     /// What the preprocessors did to the images' photometry.
     pub photometry: Photometry,
 }
@@ -168,7 +173,16 @@ pub struct CameraFrame {
 impl CameraFrame {
     /// A mono frame with no depth, pose, masks or photometric corrections.
     pub fn mono(index: usize, timestamp_s: f64, image: Rgb8) -> Self {
-        Self { index, timestamp_s, views: Views::Mono(image), depth_m: None, gt_t_world_cam: None, masks: Masks::new(), photometry: Photometry::default() }
+        Self {
+            index,
+            timestamp_s,
+            views: Views::Mono(image),
+            depth_m: None,
+            gt_t_world_cam: None,
+            masks: Masks::new(),
+            right_masks: Masks::new(),
+            photometry: Photometry::default(),
+        }
     }
 }
 

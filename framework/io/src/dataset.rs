@@ -286,7 +286,16 @@ impl Dataset {
         if let Some(m) = &self.out_of_view {
             masks.insert(MASK_OUT_OF_VIEW, m.clone());
         }
-        let frame = CameraFrame { index, timestamp_s: e.timestamp_s, views, depth_m, gt_t_world_cam: e.gt, masks, photometry: Photometry::default() };
+        let frame = CameraFrame {
+            index,
+            timestamp_s: e.timestamp_s,
+            views,
+            depth_m,
+            gt_t_world_cam: e.gt,
+            masks,
+            right_masks: Masks::new(),
+            photometry: Photometry::default(),
+        };
         Ok((frame, warning))
     }
 }

@@ -1,7 +1,8 @@
 //! `stereo-sgm`: metric depth from a calibrated stereo pair on the CPU (issue 19). Per frame:
 //! 1. both views rectified (Bouguet, `capsule_slam_framework::stereo::rectify`; maps made once
-//!    per rig, [`remap`]), their luminance sampled bilinearly; the left frame's masks
-//!    (highlights, out of view) and clipped pixels of either view leave no match;
+//!    per rig, [`remap`]), their luminance sampled bilinearly; the masks of either view
+//!    (`CameraFrame::masks` and `right_masks`: highlights, out of view) and clipped pixels of
+//!    either view leave no match;
 //! 2. coarse-to-fine matching ([`matcher`]): masked ZNCC costs ([`zncc`]) aggregated by
 //!    semi-global matching ([`sgm`], Hirschmüller 2008, 4 or 8 paths) over the whole disparity
 //!    range at the top of a pyramid, then refined down every level around the level above
@@ -197,11 +198,18 @@ impl StereoSgm {
         };
         let sat = self.params.saturation.min(256) as u16;
         let clipped = |img: &capsule_slam_framework::Rgb8, x: usize, y: usize| img.pixel(x, y).iter().any(|c| u16::from(*c) >= sat);
-        let masks = frame.masks.union();
+        let (masks, right_masks) = (frame.masks.union(), frame.right_masks.union());
+        if let Some(m) = right_masks.as_ref().filter(|m| m.size() != right.size()) {
+            let ((mw, mh), (w, h)) = (m.size(), right.size());
+            return Err(StageError::invalid_input(format!(
+                "stereo-sgm: frame {}: the right view's masks are {mw}×{mh} but its image is {w}×{h}; a preprocessor published a mask of another view",
+                frame.index
+            )));
+        }
         let cam = &self.rectifier.rect.camera;
         let plane = |(gray, invalid): (Vec<f32>, Vec<bool>)| Plane { gray, invalid, width: cam.width, height: cam.height };
         let l = plane(self.rectifier.view(Side::Left, left, |x, y| clipped(left, x, y) || masks.as_ref().is_some_and(|m| m.at(x, y))));
-        let r = plane(self.rectifier.view(Side::Right, right, |x, y| clipped(right, x, y)));
+        let r = plane(self.rectifier.view(Side::Right, right, |x, y| clipped(right, x, y) || right_masks.as_ref().is_some_and(|m| m.at(x, y))));
         let disparity = matcher::match_pair(&l, &r, &self.settings());
         let depth = self.rectifier.depth_in_left(&disparity)?;
         let fb = cam.fx * self.rectifier.rect.baseline_m;

@@ -24,6 +24,7 @@ fn frame(ph: &Phantom, i: usize) -> CameraFrame {
         depth_m: Some(l.depth_m),
         gt_t_world_cam: None,
         masks: Masks::new(),
+        right_masks: Masks::new(),
         photometry: Photometry::default(),
     }
 }
@@ -66,6 +67,43 @@ fn a_phantom_pair_gives_its_depth() {
     let (x, y) = (160, 160);
     let z = f64::from(depth.at(x, y));
     assert!(z > 0.0 && (f64::from(sigma.at(x, y)) - z * z * 0.3 / (160.0 * 0.005)).abs() < 1e-6);
+}
+
+/// The right view's own masks (`CameraFrame::right_masks`, e.g. its highlights) leave no depth
+/// where a left pixel's match falls in them; a mask of another size is an error naming it.
+#[test]
+fn the_right_views_masks_leave_no_depth_where_they_hide_the_match() {
+    let (ph, rig) = stereo_phantom(1);
+    let sgm = StereoSgm::build(StereoSgmParams::default(), &BuildEnv::new(rig.clone(), None)).unwrap();
+    let mut f = frame(&ph, 5);
+    let cam = rig.camera();
+    let fb = cam.fx * rig.baseline_m().unwrap();
+    let truth = f.depth_m.clone().unwrap();
+    let (cx, cy, radius) = (150.0, 160.0, 14.0);
+    let mut disc = capsule_slam_framework::Mask::new(cam.width, cam.height);
+    for y in 0..cam.height {
+        for x in 0..cam.width {
+            *disc.at_mut(x, y) = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2) < radius * radius;
+        }
+    }
+    // Left pixels whose true match lies 2 px or more inside the disc (the rig is rectified).
+    let hidden: Vec<(usize, usize)> = (0..cam.height)
+        .flat_map(|y| (0..cam.width).map(move |x| (x, y)))
+        .filter(|&(x, y)| {
+            let z = f64::from(truth.at(x, y));
+            z > 0.0 && ((x as f64 - fb / z - cx).powi(2) + (y as f64 - cy).powi(2)).sqrt() < radius - 2.0
+        })
+        .collect();
+    assert!(hidden.len() > 300, "{} hidden pixels", hidden.len());
+    let with_depth = |d: &capsule_slam_framework::DepthMap| hidden.iter().filter(|&&(x, y)| d.at(x, y) > 0.0).count();
+    let (open, _) = sgm.depth(&f).unwrap();
+    assert!(with_depth(&open) as f64 > 0.8 * hidden.len() as f64, "unmasked, {} of {} have depth", with_depth(&open), hidden.len());
+    f.right_masks.insert(capsule_slam_framework::frame::MASK_SPECULAR, disc);
+    let (masked, _) = sgm.depth(&f).unwrap();
+    assert_eq!(with_depth(&masked), 0, "masked in the right view, none has depth");
+    f.right_masks.insert("other", capsule_slam_framework::Mask::new(7, 5));
+    let err = sgm.depth(&f).err().unwrap().to_string();
+    assert!(err.contains("right view's masks are 7×5") && err.contains("frame 5"), "{err}");
 }
 
 #[test]

@@ -133,7 +133,7 @@ impl Reflection {
 impl Preprocessor for Reflection {
     fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
         let ignored = frame.masks.union();
-        let mut published = None;
+        let (mut published, mut published_right) = (None, None);
         let (mut groups, mut rejected, mut share) = (0, 0, 0.0);
         for (i, img) in frame.views.iter_mut().enumerate() {
             let (w, h) = img.size();
@@ -161,21 +161,30 @@ impl Preprocessor for Reflection {
                 let n_valid = valid.data().iter().filter(|v| **v).count().max(1);
                 share = out.inpainted.data().iter().filter(|v| **v).count() as f64 / n_valid as f64;
                 published = Some(out.inpainted);
+            } else {
+                published_right = Some(out.inpainted);
             }
         }
         ctx.count("highlight_share", share);
         ctx.count("peak_groups", groups as f64);
         ctx.count("rejected_groups", rejected as f64);
-        if self.params.publish_mask
-            && let Some(mut m) = published
-        {
-            if let Some(old) = frame.masks.get(MASK_SPECULAR) {
-                m.data_mut().iter_mut().zip(old.data()).for_each(|(a, b)| *a |= *b);
+        if self.params.publish_mask {
+            for (masks, found) in [(&mut frame.masks, published), (&mut frame.right_masks, published_right)] {
+                if let Some(m) = found {
+                    add_mask(masks, m);
+                }
             }
-            frame.masks.insert(MASK_SPECULAR, m);
         }
         Ok(())
     }
+}
+
+/// Publishes `m` as the view's [`MASK_SPECULAR`], joined with one an earlier stage published.
+fn add_mask(masks: &mut capsule_slam_framework::frame::Masks, mut m: Mask) {
+    if let Some(old) = masks.get(MASK_SPECULAR).filter(|old| old.size() == m.size()) {
+        m.data_mut().iter_mut().zip(old.data()).for_each(|(a, b)| *a |= *b);
+    }
+    masks.insert(MASK_SPECULAR, m);
 }
 
 register!(Preprocessor, Reflection);

@@ -144,6 +144,30 @@ fn the_stage_publishes_the_mask_and_cleans_stereo_views() {
     assert!(frame.masks.get(MASK_SPECULAR).is_none());
 }
 
+/// A light beside the lenses puts each view's glints elsewhere: the right view's highlight is
+/// published in the right view's own masks, and the left's masks stay as the left view found.
+#[test]
+fn each_view_of_a_stereo_pair_gets_its_own_highlight_mask() {
+    let (img, diffuse, truth) = scene(120, 100, 57.0, 44.0, 4.0, 1.5);
+    let cam = PinholeCamera::new(120, 100, 60.0, 60.0, 59.5, 49.5);
+    let rig = Rig::Mono(cam);
+    let mut frame = CameraFrame::mono(0, 0.0, img.clone());
+    frame.views = capsule_slam_framework::Views::Stereo { left: diffuse.clone(), right: img };
+    let mut r = Reflection::new(ReflectionParams::default());
+    r.process(&mut frame, &mut Context::new(0, &rig, None, &mut StageReport::default())).unwrap();
+    let right = frame.right_masks.get(MASK_SPECULAR).expect("the right view's mask");
+    assert!(truth.data().iter().zip(right.data()).filter(|(t, _)| **t).all(|(_, f)| *f), "the right mask covers the right view's highlight");
+    let n_truth = truth.data().iter().filter(|v| **v).count();
+    assert!(n_truth > 20, "{n_truth}");
+    let left_marked = frame.masks.get(MASK_SPECULAR).map_or(0, |m| m.data().iter().filter(|v| **v).count());
+    assert_eq!(left_marked, 0, "the left view has no highlight: its mask marks nothing");
+    // A second stage joins its mask with the first one's (here: the same pixels again).
+    let before = right.clone();
+    r.process(&mut frame, &mut Context::new(0, &rig, None, &mut StageReport::default())).unwrap();
+    let after = frame.right_masks.get(MASK_SPECULAR).unwrap();
+    assert!(before.data().iter().zip(after.data()).all(|(b, a)| !*b || *a), "an earlier mask is kept");
+}
+
 #[test]
 fn odd_sizes_black_and_saturated_frames_do_not_panic() {
     let mut r = Reflection::new(ReflectionParams::default());
