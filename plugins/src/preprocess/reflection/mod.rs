@@ -169,9 +169,14 @@ impl Preprocessor for Reflection {
         ctx.count("peak_groups", groups as f64);
         ctx.count("rejected_groups", rejected as f64);
         if self.params.publish_mask {
-            for (masks, found) in [(&mut frame.masks, published), (&mut frame.right_masks, published_right)] {
-                if let Some(m) = found {
-                    add_mask(masks, m);
+            for (view, masks, found) in [("left", &mut frame.masks, published), ("right", &mut frame.right_masks, published_right)] {
+                if let Some(m) = found
+                    && let Some((old_w, old_h)) = add_mask(masks, m)
+                {
+                    ctx.warn(format!(
+                        "frame {}: the {view} view's highlight mask of an earlier stage is {old_w}×{old_h}, not the view's size: it was replaced by this stage's, not joined",
+                        frame.index
+                    ));
                 }
             }
         }
@@ -180,11 +185,17 @@ impl Preprocessor for Reflection {
 }
 
 /// Publishes `m` as the view's [`MASK_SPECULAR`], joined with one an earlier stage published.
-fn add_mask(masks: &mut capsule_slam_framework::frame::Masks, mut m: Mask) {
-    if let Some(old) = masks.get(MASK_SPECULAR).filter(|old| old.size() == m.size()) {
-        m.data_mut().iter_mut().zip(old.data()).for_each(|(a, b)| *a |= *b);
+/// An earlier mask of another size cannot be joined: it is replaced, and its size returned so
+/// that the caller can say so.
+fn add_mask(masks: &mut capsule_slam_framework::frame::Masks, mut m: Mask) -> Option<(usize, usize)> {
+    let mut dropped = None;
+    match masks.get(MASK_SPECULAR) {
+        Some(old) if old.size() == m.size() => m.data_mut().iter_mut().zip(old.data()).for_each(|(a, b)| *a |= *b),
+        Some(old) => dropped = Some(old.size()),
+        None => {}
     }
     masks.insert(MASK_SPECULAR, m);
+    dropped
 }
 
 register!(Preprocessor, Reflection);

@@ -166,6 +166,16 @@ fn each_view_of_a_stereo_pair_gets_its_own_highlight_mask() {
     r.process(&mut frame, &mut Context::new(0, &rig, None, &mut StageReport::default())).unwrap();
     let after = frame.right_masks.get(MASK_SPECULAR).unwrap();
     assert!(before.data().iter().zip(after.data()).all(|(b, a)| !*b || *a), "an earlier mask is kept");
+    // An earlier mask of another size cannot be joined: it is replaced, and the run is told.
+    frame.right_masks.insert(MASK_SPECULAR, Mask::filled(7, 5, true));
+    let mut report = StageReport::default();
+    r.process(&mut frame, &mut Context::new(0, &rig, None, &mut report)).unwrap();
+    assert_eq!(frame.right_masks.get(MASK_SPECULAR).unwrap().size(), (120, 100));
+    let warned: Vec<_> = report.warnings.iter().filter(|w| w.contains("right view") && w.contains("7×5")).collect();
+    assert_eq!(warned.len(), 1, "{:?}", report.warnings);
+    let mut report = StageReport::default();
+    r.process(&mut frame, &mut Context::new(0, &rig, None, &mut report)).unwrap();
+    assert!(report.warnings.is_empty(), "a mask of the right size is joined silently: {:?}", report.warnings);
 }
 
 #[test]
