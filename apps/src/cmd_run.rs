@@ -203,7 +203,7 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
     println!("frames            {}", summary.frames);
     println!("frames lost       {}", summary.frames_lost);
     println!("ms per frame      {:.2} mean, {:.2} p95", summary.ms_per_frame_mean, summary.ms_per_frame_p95);
-    println!("surfels           {} ({} active)", summary.surfels, summary.surfels_active);
+    println!("surfels           {} ({} active; {} written and scored)", summary.surfels, summary.surfels_active, summary.surfels_written);
     println!("loop closures     {}", summary.loop_closures);
     let path_m = summary.metrics.get("path_length_m").copied().unwrap_or(0.0);
     let pct = |a: f64| if path_m > 0.0 { format!(" ({:.3} % of the {:.1} mm path)", a / path_m * 100.0, path_m * 1e3) } else { String::new() };
@@ -223,7 +223,10 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
     if let Some(r) = summary.metrics.get("surface_rmse_m") {
         let c = summary.metrics.get("surface_completeness_1mm").copied().unwrap_or(0.0);
         let c10 = summary.metrics.get("surface_completeness_1mm_seen10").copied().unwrap_or(0.0);
-        println!("surface RMSE      {:.3} mm", r * 1e3);
+        match summary.metrics.get("surface_rmse_with_unstable_m") {
+            Some(all) => println!("surface RMSE      {:.3} mm (stable surfels; {:.3} mm with the unstable ones too)", r * 1e3, all * 1e3),
+            None => println!("surface RMSE      {:.3} mm", r * 1e3),
+        }
         println!("completeness      {:.1} % of the observed truth within 1 mm ({:.1} % of the truth observed in ≥ 10 frames)", c * 100.0, c10 * 100.0);
     }
     if let (Some(r), Some(med), Some(p95)) =

@@ -56,7 +56,8 @@ fn the_live_surface_of_an_oracle_run_lies_on_the_wall_and_a_moving_wall_shows_in
     assert_eq!(live(&wave, "warp_estimated_rms_m"), 0.0);
     let (e, t) = (live(&wave, "warp_error_rmse_m"), live(&wave, "warp_true_rms_m"));
     assert!(e == t && t > 1e-4 && t < 0.008, "warp error {e}, true motion {t}");
-    assert!(live(&wave, "warp_error_points") > 1000.0 && live(&wave, "warp_error_skipped") == 0.0);
+    let (points, skipped) = (live(&wave, "warp_error_points"), live(&wave, "warp_error_skipped"));
+    assert!(points > 500.0 && skipped == 0.0, "{points} stable surfels measured, {skipped} skipped");
 
     // A run that ends where the moving wall has no true surface says so and reports no figure.
     let short = oracle_run(&moving, &tmp.path().join("out-short"), 25);

@@ -173,6 +173,12 @@ pub trait Fuser: Send {
     fn active_window(&self) -> Option<u32> {
         None
     }
+    /// The confidence from which a surfel is stable: seen often enough to be predicted and
+    /// written (ElasticFusion's `confThreshold`; its PLY export keeps only such surfels).
+    /// `None`: this fuser counts every surfel as stable.
+    fn stable_confidence(&self) -> Option<f32> {
+        None
+    }
 }
 
 /// What a loop closer gets each frame.

@@ -75,7 +75,9 @@ pub fn run_observed(
             Ok(rec) => {
                 if let (true, Some((map, traj)), Some(truth)) = (rec.loop_closed, &before, &truth) {
                     let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?;
-                    let score = |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((map, truth)), &eval_opts);
+                    let stable = written_threshold(pipeline);
+                    let score =
+                        |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&stable_part(map, stable), truth)), &eval_opts);
                     let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
                     writer.write_closure(i, &b, &a)?;
                 }
@@ -96,24 +98,21 @@ pub fn run_observed(
     if pipeline.loop_closures() > 0 {
         writer.rewrite_trajectory(pipeline.trajectory())?;
     }
-    let map = match pipeline.snapshot() {
-        Ok(set) => Some(set),
-        Err(e) => {
-            if failure.is_none() {
-                failure = Some(stage_error(pipeline, n, e));
-            }
-            None
-        }
-    };
+    // A map that cannot be read out fails the run, unless it failed already.
+    let whole = pipeline.snapshot().map_err(|e| failure.get_or_insert(stage_error(pipeline, n, e))).ok();
+    let map = whole.as_ref().map(|w| stable_part(w, written_threshold(pipeline)));
     if let (true, Some(set)) = (opts.write_map, &map) {
         writer.write_map(set)?;
     }
     if failure.is_none() {
-        failure = no_result(&records, map.as_ref());
+        failure = no_result(&records, whole.as_ref());
     }
     let mut summary = summarise(pipeline, &records, &counters, truth_warning.into_iter().chain(load_warnings));
     summary.build = opts.build;
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
+    if let (Some(w), Some(m)) = (&whole, &map) {
+        note_unstable(dataset, pipeline, (w, m), truth.as_ref(), &eval_opts, &mut summary);
+    }
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
     if !abs_rel.is_empty() {
         summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
@@ -250,6 +249,51 @@ fn load_truth(dataset: &Dataset) -> (Option<SurfelSet>, Option<String>) {
     match ply::read_surfels(&truth_file) {
         Ok(set) => (Some(set), None),
         Err(e) => (None, Some(format!("surface figures off: {e}; the file is read only to score the run: fix or remove it"))),
+    }
+}
+
+/// The confidence from which a surfel is written: the fuser's stable threshold, unless
+/// `output.unstable_surfels` asks for every surfel.
+fn written_threshold(pipeline: &Pipeline) -> Option<f32> {
+    if pipeline.resolved_config().output.unstable_surfels { None } else { pipeline.stable_confidence() }
+}
+
+/// What the written map `map` leaves out of the fuser's `whole` one, into `summary`: the count
+/// written, a warning when no surfel is stable yet, and the surface RMSE with the unstable
+/// surfels beside the written map's.
+fn note_unstable(
+    dataset: &Dataset,
+    pipeline: &Pipeline,
+    (whole, map): (&SurfelSet, &SurfelSet),
+    truth: Option<&SurfelSet>,
+    eval_opts: &EvalOptions,
+    summary: &mut Summary,
+) {
+    summary.surfels_written = map.len();
+    if let Some(c) = written_threshold(pipeline)
+        && map.is_empty()
+        && !whole.is_empty()
+    {
+        summary.warnings.push(format!(
+            "none of the map's {} surfels is stable yet (confidence ≥ {c}, about {c} views): map.ply is empty and the map's figures are off; run more frames or set output.unstable_surfels = true",
+            whole.len()
+        ));
+    }
+    if let Some(t) = truth
+        && whole.len() > map.len()
+        && !dataset.ground_truth().is_empty()
+        && let Some(rmse) = evaluate(pipeline.trajectory(), dataset.ground_truth(), Some((whole, t)), eval_opts).get("surface_rmse_m")
+    {
+        summary.metrics.insert("surface_rmse_with_unstable_m".into(), *rmse);
+    }
+}
+
+/// The stable part of a map (confidence at or above `stable`; all of it without a threshold),
+/// in the map's canonical order: what `map.ply` holds and the map's figures score.
+fn stable_part(whole: &SurfelSet, stable: Option<f32>) -> SurfelSet {
+    match stable {
+        Some(c) => SurfelSet { surfels: whole.surfels.iter().filter(|s| s.confidence >= c).copied().collect() },
+        None => whole.clone(),
     }
 }
 

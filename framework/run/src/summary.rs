@@ -39,6 +39,9 @@ pub struct Summary {
     pub surfels: usize,
     /// Active surfels in the final map.
     pub surfels_active: usize,
+    /// Surfels written to `map.ply` and scored: the stable ones (all with
+    /// `output.unstable_surfels`).
+    pub surfels_written: usize,
     /// Loop closures applied.
     pub loop_closures: usize,
     /// Whether the depth, the map and the trajectory are in metres: `false` for a depth

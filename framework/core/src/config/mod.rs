@@ -143,11 +143,15 @@ pub struct OutputConfig {
     pub dir: PathBuf,
     /// Whether to write `map.ply` at the end.
     pub map: bool,
+    /// Whether `map.ply` (and the map's figures) also hold the unstable surfels: those below
+    /// the fuser's stable confidence, seen too few times to be predicted. Off: the map is the
+    /// stable surfels, as ElasticFusion exports it.
+    pub unstable_surfels: bool,
 }
 
 impl Default for OutputConfig {
     fn default() -> Self {
-        Self { dir: PathBuf::from("out"), map: true }
+        Self { dir: PathBuf::from("out"), map: true, unstable_surfels: false }
     }
 }
 

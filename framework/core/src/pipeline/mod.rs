@@ -219,6 +219,11 @@ impl Pipeline {
         self.stages.fuser.1.snapshot()
     }
 
+    /// The fuser's stable threshold ([`Fuser::stable_confidence`]).
+    pub fn stable_confidence(&self) -> Option<f32> {
+        self.stages.fuser.1.stable_confidence()
+    }
+
     /// Processes one frame through every stage.
     pub fn process(&mut self, mut frame: CameraFrame) -> Result<FrameRecord, PipelineError> {
         let start = Instant::now();

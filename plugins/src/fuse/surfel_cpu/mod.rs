@@ -194,6 +194,10 @@ impl Fuser for SurfelCpu {
     fn active_window(&self) -> Option<u32> {
         Some(self.params.delta_t)
     }
+
+    fn stable_confidence(&self) -> Option<f32> {
+        Some(self.params.stable_confidence)
+    }
 }
 
 register!(Fuser, SurfelCpu);

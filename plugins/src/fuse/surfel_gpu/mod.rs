@@ -149,6 +149,10 @@ impl Fuser for SurfelGpu {
     fn active_window(&self) -> Option<u32> {
         Some(self.params.delta_t)
     }
+
+    fn stable_confidence(&self) -> Option<f32> {
+        Some(self.params.stable_confidence)
+    }
 }
 
 register!(Fuser, SurfelGpu);
