@@ -223,8 +223,8 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
     if let Some(r) = summary.metrics.get("surface_rmse_m") {
         let c = summary.metrics.get("surface_completeness_1mm").copied().unwrap_or(0.0);
         let c10 = summary.metrics.get("surface_completeness_1mm_seen10").copied().unwrap_or(0.0);
-        match summary.metrics.get("surface_rmse_with_unstable_m") {
-            Some(all) => println!("surface RMSE      {:.3} mm (stable surfels; {:.3} mm with the unstable ones too)", r * 1e3, all * 1e3),
+        match summary.metrics.get("surface_rmse_all_surfels_m") {
+            Some(all) => println!("surface RMSE      {:.3} mm (the written surfels; {:.3} mm with every surfel)", r * 1e3, all * 1e3),
             None => println!("surface RMSE      {:.3} mm", r * 1e3),
         }
         println!("completeness      {:.1} % of the observed truth within 1 mm ({:.1} % of the truth observed in ≥ 10 frames)", c * 100.0, c10 * 100.0);

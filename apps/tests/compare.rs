@@ -31,12 +31,12 @@ set = ["pipeline.depth=sensor", "pipeline.tracker=icp-rgb", "plugins.icp-rgb.mod
 
 [[input]]
 synth = {{ preset = 1, frames = 60, size = "naneye" }}
-frames = 14
+frames = 8
 name = "slow"
 
 [[input]]
 synth = {{ preset = 2, frames = 60, size = "naneye" }}
-frames = 14
+frames = 8
 "#
     );
     let p = dir.join("plan.toml");
@@ -110,7 +110,7 @@ fn a_grid_equals_its_runs_resumes_and_collects_jobs_run_elsewhere() {
             bare.to_str().unwrap(),
             "-q",
             "--frames",
-            "14",
+            "8",
             "--set",
             "pipeline.depth=sensor",
             "--set",

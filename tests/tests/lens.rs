@@ -23,7 +23,7 @@ fn run_on(data: &Path, out: &Path, tracker: &str) -> Summary {
     let tracker_set = format!("pipeline.tracker={tracker}");
     // Every fused surfel, the tentative ones at the rim too: the test is about where each
     // pixel's depth lands, not which surfels are written.
-    let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", tracker_set.as_str(), "input.initial_pose=ground-truth", "output.unstable_surfels=true"];
+    let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", tracker_set.as_str(), "input.initial_pose=ground-truth", "output.map_surfels=all"];
     run_with(data, out, &sets, &RunOptions { write_map: true, ..RunOptions::default() })
 }
 

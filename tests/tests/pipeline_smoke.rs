@@ -256,13 +256,13 @@ fn a_trackers_warp_moves_the_map_before_fusion_and_a_fuser_without_warp_says_so(
     fixtures::write_dataset(&data, 6);
     // surfel-cpu follows the warp: 5 warps of 0.1 mm along z, each before the frame is fused.
     let run = |tracker: &str, out: &str| {
-        // Six frames: no surfel is stable yet, so every one is written.
+        // Every surfel, those of the last frame too.
         let sets = [
             "pipeline.depth=sensor".to_string(),
             "pipeline.preprocess=[]".into(),
             format!("pipeline.tracker={tracker}"),
             "pipeline.fuser=surfel-cpu".into(),
-            "output.unstable_surfels=true".into(),
+            "output.map_surfels=all".into(),
         ];
         let summary = run_on(&data, &tmp.path().join(out), &Config::load(None, &sets).unwrap()).unwrap();
         (summary, ply::read_surfels(&tmp.path().join(out).join("map.ply")).unwrap())

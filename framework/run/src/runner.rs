@@ -11,7 +11,8 @@ use capsule_slam_io::{Dataset, ply};
 use crate::summary::{CounterSums, Summary, frame_row};
 use crate::truth::{LiveTruth, live_truth, wall_motion};
 use crate::writer::RunWriter;
-use capsule_slam_framework::map::SurfelSet;
+use capsule_slam_framework::config::MapSurfels;
+use capsule_slam_framework::map::{Surfel, SurfelSet};
 use capsule_slam_framework::pipeline::{FrameRecord, Pipeline};
 
 /// Options of a run.
@@ -75,9 +76,9 @@ pub fn run_observed(
             Ok(rec) => {
                 if let (true, Some((map, traj)), Some(truth)) = (rec.loop_closed, &before, &truth) {
                     let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?;
-                    let stable = written_threshold(pipeline);
+                    let stable = written_rule(pipeline);
                     let score =
-                        |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&stable_part(map, stable), truth)), &eval_opts);
+                        |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&written_part(map, stable), truth)), &eval_opts);
                     let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
                     writer.write_closure(i, &b, &a)?;
                 }
@@ -100,7 +101,7 @@ pub fn run_observed(
     }
     // A map that cannot be read out fails the run, unless it failed already.
     let whole = pipeline.snapshot().map_err(|e| failure.get_or_insert(stage_error(pipeline, n, e))).ok();
-    let map = whole.as_ref().map(|w| stable_part(w, written_threshold(pipeline)));
+    let map = whole.as_ref().map(|w| written_part(w, written_rule(pipeline)));
     if let (true, Some(set)) = (opts.write_map, &map) {
         writer.write_map(set)?;
     }
@@ -111,7 +112,7 @@ pub fn run_observed(
     summary.build = opts.build;
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
     if let (Some(w), Some(m)) = (&whole, &map) {
-        note_unstable(dataset, pipeline, (w, m), truth.as_ref(), &eval_opts, &mut summary);
+        note_left_out(dataset, pipeline, (w, m), truth.as_ref(), &eval_opts, &mut summary);
     }
     let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
     if !abs_rel.is_empty() {
@@ -252,16 +253,16 @@ fn load_truth(dataset: &Dataset) -> (Option<SurfelSet>, Option<String>) {
     }
 }
 
-/// The confidence from which a surfel is written: the fuser's stable threshold, unless
-/// `output.unstable_surfels` asks for every surfel.
-fn written_threshold(pipeline: &Pipeline) -> Option<f32> {
-    if pipeline.resolved_config().output.unstable_surfels { None } else { pipeline.stable_confidence() }
+/// Which surfels are written and scored: `output.map_surfels`, with the fuser's stable
+/// confidence for [`MapSurfels::Stable`] (a fuser without one counts every surfel as stable).
+fn written_rule(pipeline: &Pipeline) -> (MapSurfels, Option<f32>) {
+    (pipeline.resolved_config().output.map_surfels, pipeline.stable_confidence())
 }
 
 /// What the written map `map` leaves out of the fuser's `whole` one, into `summary`: the count
-/// written, a warning when no surfel is stable yet, and the surface RMSE with the unstable
-/// surfels beside the written map's.
-fn note_unstable(
+/// written, a warning when nothing is left to write, and the surface RMSE of every surfel beside
+/// the written map's.
+fn note_left_out(
     dataset: &Dataset,
     pipeline: &Pipeline,
     (whole, map): (&SurfelSet, &SurfelSet),
@@ -270,12 +271,13 @@ fn note_unstable(
     summary: &mut Summary,
 ) {
     summary.surfels_written = map.len();
-    if let Some(c) = written_threshold(pipeline)
-        && map.is_empty()
-        && !whole.is_empty()
-    {
+    if map.is_empty() && !whole.is_empty() {
+        let why = match written_rule(pipeline) {
+            (MapSurfels::Stable, Some(c)) => format!("is stable yet (confidence ≥ {c}, about {c} views)"),
+            _ => "was seen in more than one frame".to_owned(),
+        };
         summary.warnings.push(format!(
-            "none of the map's {} surfels is stable yet (confidence ≥ {c}, about {c} views): map.ply is empty and the map's figures are off; run more frames or set output.unstable_surfels = true",
+            "none of the map's {} surfels {why}: map.ply is empty and the map's figures are off; run more frames or set output.map_surfels = \"all\"",
             whole.len()
         ));
     }
@@ -284,17 +286,18 @@ fn note_unstable(
         && !dataset.ground_truth().is_empty()
         && let Some(rmse) = evaluate(pipeline.trajectory(), dataset.ground_truth(), Some((whole, t)), eval_opts).get("surface_rmse_m")
     {
-        summary.metrics.insert("surface_rmse_with_unstable_m".into(), *rmse);
+        summary.metrics.insert("surface_rmse_all_surfels_m".into(), *rmse);
     }
 }
 
-/// The stable part of a map (confidence at or above `stable`; all of it without a threshold),
-/// in the map's canonical order: what `map.ply` holds and the map's figures score.
-fn stable_part(whole: &SurfelSet, stable: Option<f32>) -> SurfelSet {
-    match stable {
-        Some(c) => SurfelSet { surfels: whole.surfels.iter().filter(|s| s.confidence >= c).copied().collect() },
-        None => whole.clone(),
-    }
+/// The part of a map that is written, in the map's canonical order ([`MapSurfels`]).
+fn written_part(whole: &SurfelSet, (rule, stable): (MapSurfels, Option<f32>)) -> SurfelSet {
+    let keep = |s: &Surfel| match rule {
+        MapSurfels::All => true,
+        MapSurfels::Confirmed => s.t > s.t0 || stable.is_none_or(|c| s.confidence >= c),
+        MapSurfels::Stable => stable.is_none_or(|c| s.confidence >= c),
+    };
+    SurfelSet { surfels: whole.surfels.iter().filter(|s| keep(s)).copied().collect() }
 }
 
 fn stage_error(pipeline: &Pipeline, frame: usize, source: capsule_slam_framework::error::StageError) -> PipelineError {

@@ -39,8 +39,7 @@ pub struct Summary {
     pub surfels: usize,
     /// Active surfels in the final map.
     pub surfels_active: usize,
-    /// Surfels written to `map.ply` and scored: the stable ones (all with
-    /// `output.unstable_surfels`).
+    /// Surfels written to `map.ply` and scored (`output.map_surfels`).
     pub surfels_written: usize,
     /// Loop closures applied.
     pub loop_closures: usize,

@@ -143,16 +143,30 @@ pub struct OutputConfig {
     pub dir: PathBuf,
     /// Whether to write `map.ply` at the end.
     pub map: bool,
-    /// Whether `map.ply` (and the map's figures) also hold the unstable surfels: those below
-    /// the fuser's stable confidence, seen too few times to be predicted. Off: the map is the
-    /// stable surfels, as ElasticFusion exports it.
-    pub unstable_surfels: bool,
+    /// Which surfels `map.ply` holds and the map's figures score.
+    pub map_surfels: MapSurfels,
 }
 
 impl Default for OutputConfig {
     fn default() -> Self {
-        Self { dir: PathBuf::from("out"), map: true, unstable_surfels: false }
+        Self { dir: PathBuf::from("out"), map: true, map_surfels: MapSurfels::default() }
     }
+}
+
+/// Which surfels of the fuser's map are written (`output.map_surfels`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MapSurfels {
+    /// Those seen in at least two frames (last seen after the frame that created them) or
+    /// stable: a surfel one frame made and no other confirmed (a stereo mismatch at the rim of
+    /// the last frames' view) is left out, while a still camera's ten frames keep their whole view.
+    #[default]
+    Confirmed,
+    /// Those at or above the fuser's stable confidence (ElasticFusion's export: about ten views
+    /// for a surfel near the image centre, more towards the rim).
+    Stable,
+    /// Every surfel.
+    All,
 }
 
 impl Config {
