@@ -167,10 +167,10 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
         bar.inc(1);
     });
     bar.finish_and_clear();
-    // One snapshot of the final map for the plots and the recording (the runner's own went
-    // into map.ply and the evaluation). The recording is completed whether or not the run was
-    // (it shows where a run failed).
-    let map = (!args.no_plots || recording.is_some()).then(|| pipeline.snapshot().ok()).flatten();
+    // One snapshot of the final map for the plots and the recording, the surfels map.ply holds
+    // (the runner's own snapshot went into map.ply and the evaluation). The recording is
+    // completed whether or not the run was (it shows where a run failed).
+    let map = (!args.no_plots || recording.is_some()).then(|| pipeline.snapshot().ok().map(|w| capsule_slam_run::written_map(&pipeline, &w))).flatten();
     let recorded = recording.map(|r| r.finish(pipeline.trajectory(), map.as_ref())).transpose().unwrap_or_else(|e| {
         eprintln!("warning: {e:#}");
         None

@@ -15,18 +15,25 @@ use capsule_slam_tests::runs::{metric, run_with};
 /// `surfel-cpu`'s default stable confidence (ElasticFusion's `confThreshold`).
 const STABLE: f32 = 10.0;
 
-fn run_on(data: &Path, out: &Path, extra: &[&str]) -> Summary {
+/// Exact depth at the true poses over the first `frames` frames (all of them: `None`).
+fn run_on(data: &Path, out: &Path, extra: &[&str], frames: Option<usize>) -> Summary {
     let mut sets = vec!["pipeline.depth=sensor", "pipeline.preprocess=[]", "pipeline.tracker=ground-truth", "input.initial_pose=ground-truth"];
     sets.extend_from_slice(extra);
-    run_with(data, out, &sets, &RunOptions { write_map: true, ..RunOptions::default() })
+    run_with(data, out, &sets, &RunOptions { write_map: true, max_frames: frames, ..RunOptions::default() })
+}
+
+/// Preset 2's phantom in `frames` NanEye frames, written to `dir`/seq.
+fn phantom(dir: &Path, frames: usize) -> std::path::PathBuf {
+    let data = dir.join("seq");
+    let spec = PhantomSpec { frames, size: SizePreset::NanEye, ..PhantomSpec::preset(2) };
+    write_sequence(&Phantom::new(spec).unwrap(), &data, &|_| {}).unwrap();
+    data
 }
 
 #[test]
-fn the_written_map_is_the_stable_surfels_and_its_figures_score_it() {
+fn each_rule_writes_its_surfels_and_the_figures_score_what_is_written() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("seq");
-    let spec = PhantomSpec { frames: 30, size: SizePreset::NanEye, ..PhantomSpec::preset(2) };
-    write_sequence(&Phantom::new(spec).unwrap(), &data, &|_| {}).unwrap();
+    let data = phantom(tmp.path(), 30);
 
     let written = |out: &Path, s: &Summary| {
         let map = ply::read_surfels(&out.join("map.ply")).unwrap();
@@ -35,19 +42,19 @@ fn the_written_map_is_the_stable_surfels_and_its_figures_score_it() {
         map
     };
     let out = tmp.path().join("confirmed");
-    let confirmed = run_on(&data, &out, &[]);
+    let confirmed = run_on(&data, &out, &[], None);
     let map = written(&out, &confirmed);
     assert!(map.surfels.iter().all(|s| s.t > s.t0), "only surfels seen in two frames or more are written");
     assert!(map.surfels.iter().any(|s| s.confidence < STABLE), "confirmed, not necessarily stable");
 
     let out = tmp.path().join("stable");
-    let stable = run_on(&data, &out, &["output.map_surfels=stable"]);
+    let stable = run_on(&data, &out, &["output.map_surfels=stable"], None);
     let map_stable = written(&out, &stable);
     assert!(map_stable.surfels.iter().all(|s| s.confidence >= STABLE), "only stable surfels are written");
     assert!(map_stable.len() < map.len());
 
     let out_all = tmp.path().join("all");
-    let all = run_on(&data, &out_all, &["output.map_surfels=all"]);
+    let all = run_on(&data, &out_all, &["output.map_surfels=all"], None);
     let map_all = ply::read_surfels(&out_all.join("map.ply")).unwrap();
     assert_eq!((map_all.len(), all.surfels_written), (all.surfels, all.surfels));
     assert!(map_all.surfels.iter().any(|s| s.t == s.t0), "the surfels of one frame are there");
@@ -63,16 +70,11 @@ fn the_written_map_is_the_stable_surfels_and_its_figures_score_it() {
 #[test]
 fn a_run_in_which_no_surfel_qualifies_says_so_and_writes_an_empty_map() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("seq");
-    let spec = PhantomSpec { frames: 4, size: SizePreset::NanEye, ..PhantomSpec::preset(2) };
-    write_sequence(&Phantom::new(spec).unwrap(), &data, &|_| {}).unwrap();
+    let data = phantom(tmp.path(), 4);
     // One frame: nothing seen twice; four frames: nothing stable.
     for (frames, rule, word) in [(1, "confirmed", "more than one frame"), (4, "stable", "stable")] {
         let out = tmp.path().join(rule);
-        let sets = ["pipeline.depth=sensor", "pipeline.preprocess=[]", "pipeline.tracker=ground-truth", "input.initial_pose=ground-truth"];
-        let rule_set = format!("output.map_surfels={rule}");
-        let opts = RunOptions { write_map: true, max_frames: Some(frames), ..RunOptions::default() };
-        let s = run_with(&data, &out, &[&sets[..], &[rule_set.as_str()]].concat(), &opts);
+        let s = run_on(&data, &out, &[format!("output.map_surfels={rule}").as_str()], Some(frames));
         assert_eq!(s.status, "complete", "the frames were tracked and fused");
         assert!(s.surfels > 0);
         assert_eq!((s.surfels_written, ply::read_surfels(&out.join("map.ply")).unwrap().len()), (0, 0));

@@ -8,6 +8,6 @@ pub mod summary;
 pub mod truth;
 pub mod writer;
 
-pub use runner::{GT_SURFACE_FILE, RunOptions, run, run_observed};
+pub use runner::{GT_SURFACE_FILE, RunOptions, run, run_observed, written_map};
 pub use summary::{BuildStamp, Summary};
 pub use writer::RunWriter;

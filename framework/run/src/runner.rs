@@ -290,6 +290,12 @@ fn note_left_out(
     }
 }
 
+/// The part of the pipeline's map `whole` (a [`Pipeline::snapshot`]) that `map.ply` holds
+/// (`output.map_surfels`): what plots and recordings of the final map show.
+pub fn written_map(pipeline: &Pipeline, whole: &SurfelSet) -> SurfelSet {
+    written_part(whole, written_rule(pipeline))
+}
+
 /// The part of a map that is written, in the map's canonical order ([`MapSurfels`]).
 fn written_part(whole: &SurfelSet, (rule, stable): (MapSurfels, Option<f32>)) -> SurfelSet {
     let keep = |s: &Surfel| match rule {
