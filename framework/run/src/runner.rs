@@ -76,9 +76,8 @@ pub fn run_observed(
             Ok(rec) => {
                 if let (true, Some((map, traj)), Some(truth)) = (rec.loop_closed, &before, &truth) {
                     let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?;
-                    let stable = written_rule(pipeline);
                     let score =
-                        |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&written_part(map, stable), truth)), &eval_opts);
+                        |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&written_map(pipeline, map), truth)), &eval_opts);
                     let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
                     writer.write_closure(i, &b, &a)?;
                 }
@@ -101,7 +100,7 @@ pub fn run_observed(
     }
     // A map that cannot be read out fails the run, unless it failed already.
     let whole = pipeline.snapshot().map_err(|e| failure.get_or_insert(stage_error(pipeline, n, e))).ok();
-    let map = whole.as_ref().map(|w| written_part(w, written_rule(pipeline)));
+    let map = whole.as_ref().map(|w| written_map(pipeline, w));
     if let (true, Some(set)) = (opts.write_map, &map) {
         writer.write_map(set)?;
     }
@@ -253,12 +252,6 @@ fn load_truth(dataset: &Dataset) -> (Option<SurfelSet>, Option<String>) {
     }
 }
 
-/// Which surfels are written and scored: `output.map_surfels`, with the fuser's stable
-/// confidence for [`MapSurfels::Stable`] (a fuser without one counts every surfel as stable).
-fn written_rule(pipeline: &Pipeline) -> (MapSurfels, Option<f32>) {
-    (pipeline.resolved_config().output.map_surfels, pipeline.stable_confidence())
-}
-
 /// What the written map `map` leaves out of the fuser's `whole` one, into `summary`: the count
 /// written, a warning when nothing is left to write, and the surface RMSE of every surfel beside
 /// the written map's.
@@ -272,7 +265,7 @@ fn note_left_out(
 ) {
     summary.surfels_written = map.len();
     if map.is_empty() && !whole.is_empty() {
-        let why = match written_rule(pipeline) {
+        let why = match (pipeline.resolved_config().output.map_surfels, pipeline.stable_confidence()) {
             (MapSurfels::Stable, Some(c)) => format!("is stable yet (confidence ≥ {c}, about {c} views)"),
             _ => "was seen in more than one frame".to_owned(),
         };
@@ -290,14 +283,12 @@ fn note_left_out(
     }
 }
 
-/// The part of the pipeline's map `whole` (a [`Pipeline::snapshot`]) that `map.ply` holds
-/// (`output.map_surfels`): what plots and recordings of the final map show.
+/// The part of the pipeline's map `whole` (a [`Pipeline::snapshot`]) that `map.ply` holds and
+/// the map's figures score, in the map's canonical order (`output.map_surfels`, with the fuser's
+/// stable confidence; a fuser without one counts every surfel as stable): also what plots and
+/// recordings of the final map show.
 pub fn written_map(pipeline: &Pipeline, whole: &SurfelSet) -> SurfelSet {
-    written_part(whole, written_rule(pipeline))
-}
-
-/// The part of a map that is written, in the map's canonical order ([`MapSurfels`]).
-fn written_part(whole: &SurfelSet, (rule, stable): (MapSurfels, Option<f32>)) -> SurfelSet {
+    let (rule, stable) = (pipeline.resolved_config().output.map_surfels, pipeline.stable_confidence());
     let keep = |s: &Surfel| match rule {
         MapSurfels::All => true,
         MapSurfels::Confirmed => s.t > s.t0 || stable.is_none_or(|c| s.confidence >= c),
