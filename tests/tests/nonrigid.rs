@@ -64,3 +64,30 @@ fn on_a_moving_wall_the_nonrigid_tracker_beats_the_rigid_one_and_on_a_still_wall
     assert!(skipped >= 10.0, "{skipped} of {FRAMES} frames skipped the warp solve on a still wall");
     assert_eq!(warped.counters_sum.get("nonrigid.nonrigid_probe_skipped"), None, "the moving wall was probed, not solved every frame");
 }
+
+/// The first frame whose warp solve had model points to judge (its gain counted).
+fn first_judged_solve(out: &std::path::Path) -> Option<u64> {
+    let counters = std::fs::read_to_string(out.join("counters.jsonl")).unwrap();
+    counters
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .find(|c| c.get("nonrigid.nonrigid_icp_gain").is_some())
+        .map(|c| c["frame"].as_u64().unwrap())
+}
+
+#[test]
+fn with_fill_in_the_young_map_is_warped_from_the_second_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("moving");
+    phantom(&data, 4.0);
+    let opts = RunOptions { max_frames: Some(30), ..RunOptions::default() };
+    // Off (the default): only stable surfels are predicted, so the first solve with model
+    // points waits for them (frame 20 measured).
+    run_with(&data, &tmp.path().join("off"), &["pipeline.depth=sensor"], &opts);
+    let off = first_judged_solve(&tmp.path().join("off"));
+    // On: the previous frame fills the prediction's holes, and the warp is fitted from frame 1.
+    run_with(&data, &tmp.path().join("on"), &["pipeline.depth=sensor", "plugins.nonrigid.fill_in_below_share=0.5"], &opts);
+    let on = first_judged_solve(&tmp.path().join("on"));
+    assert_eq!(on, Some(1), "with fill-in the first judged solve is at {on:?}");
+    assert!(off.is_none_or(|f| f >= 8), "without fill-in the first judged solve is at {off:?}: the prediction is not that young");
+}

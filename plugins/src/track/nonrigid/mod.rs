@@ -148,8 +148,22 @@ impl Tracker for Nonrigid {
         let clock = std::time::Instant::now();
         let points = match (model, warps) {
             (Some(m), true) => {
-                let reference = self.rigid.previous_level0().map(|l| &l.gray);
-                points::sample(m, ctx.rig.camera(), reference, self.params.point_stride_px as usize, self.params.max_incidence_rad)
+                let previous = self.rigid.previous_level0();
+                let (stride, incidence) = (self.params.point_stride_px as usize, self.params.max_incidence_rad);
+                let mut points = points::sample(m, ctx.rig.camera(), previous.map(|l| &l.gray), stride, incidence);
+                if let Some(previous) = previous
+                    && self.params.fill_in_below_share > 0.0
+                    && points::predicted_share(m, previous) < self.params.fill_in_below_share
+                {
+                    match points::sample_fill_in(m, previous, stride, incidence) {
+                        Some(fill) => {
+                            ctx.count("nonrigid_fill_in_points", fill.len() as f64);
+                            points.extend(fill);
+                        }
+                        None => ctx.warn("fill_in skipped: the prediction and the previous frame differ in size"),
+                    }
+                }
+                points
             }
             _ => Vec::new(),
         };

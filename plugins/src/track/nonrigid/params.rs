@@ -55,6 +55,15 @@ capsule_slam_framework::plugin_params! {
         /// Largest angle between a model point's normal and its view ray (SurfelWarp's append
         /// rule: view·normal > 0.4, 66°); grazing walls are left out of the fit.
         pub max_incidence_rad: f64 = 1.15; unit = "rad"; range = 0.0..=1.571;
+        /// Fit the warp also on the previous live frame where the prediction shows nothing
+        /// (ElasticFusion's fill-in) while the prediction covers less than this share of the
+        /// previous frame's valid depth pixels: a young map (its surfels not yet stable, so not
+        /// predicted: the first 10 or so frames) and a fast camera (new wall entering the view)
+        /// then warp from the second frame instead of after `stable_confidence` sightings.
+        /// 0: never (default); 1: wherever the prediction has a hole. 0.5 measured: ATE better on
+        /// fast preset 4 with 2 mm (0.408 → 0.312 %, seed 2 0.511 → 0.357 %), mixed elsewhere,
+        /// worse with 4 mm (preset 5 0.601 → 0.752 %; `docs/results/nonrigid.md`).
+        pub fill_in_below_share: f64 = 0.0; unit = "-"; range = 0.0..=1.0;
         /// Fewest model points for a node to be solved.
         pub min_points_per_node: u32 = 8; unit = "-"; range = 1.0..=10000.0;
         /// Gauss-Newton iterations (SurfelWarp: 6 after a 3-iteration rigid pre-solve). 8 measured

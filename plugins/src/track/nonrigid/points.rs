@@ -58,6 +58,52 @@ pub fn sample(model: &ModelView, cam: &PinholeCamera, previous_gray: Option<&Gra
     out
 }
 
+/// The share of the previous live frame's valid depth pixels that the prediction covers (1 when
+/// that frame has none).
+pub fn predicted_share(model: &ModelView, previous: &Level) -> f64 {
+    let seen = previous.depth.data().iter().filter(|d| **d > 0.0).count();
+    if seen == 0 {
+        return 1.0;
+    }
+    let both = previous.depth.data().iter().zip(model.depth_m.data()).filter(|(l, m)| **l > 0.0 && **m > 0.0).count();
+    both as f64 / seen as f64
+}
+
+/// The previous live frame's pixels every `stride` pixels where the prediction has no surface
+/// (ElasticFusion's fill-in, `FillIn.cpp`: the tracker's reference takes the live frame where
+/// the model shows nothing), facing the camera within `max_incidence_rad`, lifted to the world
+/// at the prediction's pose. While the map is young (its surfels below the stable confidence,
+/// so not predicted: the first 10 or so frames) and where new surface enters the view, the
+/// warp is fitted on them and the map's unstable surfels there follow the wall from the start.
+/// `None` when the prediction and the previous frame differ in size.
+pub fn sample_fill_in(model: &ModelView, previous: &Level, stride: usize, max_incidence_rad: f64) -> Option<Vec<ModelPoint>> {
+    let min_cos = max_incidence_rad.cos();
+    let (w, h) = model.depth_m.size();
+    if previous.depth.size() != (w, h) {
+        return None;
+    }
+    let t_wc = model.t_world_cam;
+    let stride = stride.max(1);
+    let mut out = Vec::new();
+    for y in (stride / 2..h).step_by(stride) {
+        for x in (stride / 2..w).step_by(stride) {
+            let z = model.depth_m.at(x, y);
+            if z > 0.0 && z.is_finite() {
+                continue;
+            }
+            let (Some(v), Some(n)) = (vertex(&previous.vertices, x, y), normal(&previous.normals, x, y)) else { continue };
+            let (x_cam, n_cam) = (v.cast::<f64>(), n.cast::<f64>());
+            if n_cam.dot(&x_cam).abs() < min_cos * x_cam.norm() {
+                continue;
+            }
+            let gray_ref = Some(f64::from(previous.gray.at(x, y))).filter(|g| *g > 0.0);
+            let sigma_m = previous.sigma.as_ref().map_or(0.0, |s| f64::from(s.at(x, y)));
+            out.push(ModelPoint { x_world_m: t_wc * Point3::from(x_cam), n_world: t_wc.rotation * n_cam, gray_ref, sigma_m });
+        }
+    }
+    Some(out)
+}
+
 /// Relights each point's reference intensity from the view it was read in (`t_world_ref`) to
 /// the live view (`t_world_live`, the rigid start): `encode(decode(I_ref) · L_live / L_ref)`, L
 /// the light model's response to a unit albedo at the point's pixel, position and normal
@@ -141,6 +187,37 @@ mod tests {
     use super::*;
     use capsule_slam_framework::geometry::exp_se3;
     use nalgebra::Vector6;
+
+    #[test]
+    fn fill_in_points_come_from_the_previous_frame_where_the_prediction_has_no_surface() {
+        let previous = crate::track::nonrigid::fixture::level(0.0);
+        let cam = crate::track::nonrigid::fixture::cam();
+        let t_wc = exp_se3(&Vector6::new(0.003, -0.001, 0.002, 0.02, -0.01, 0.03));
+        // The prediction shows the wall on the left half only (its depth from the same frame).
+        let mut model = ModelView::empty(cam.width, cam.height, t_wc);
+        for y in 0..cam.height {
+            for x in 0..cam.width / 2 {
+                model.depth_m.data_mut()[y * cam.width + x] = previous.depth.at(x, y);
+            }
+        }
+        let stride = 4;
+        let fill = sample_fill_in(&model, &previous, stride, 1.5).expect("same size");
+        let grid = (cam.width / stride) * (cam.height / stride);
+        assert!(fill.len() > grid / 3 && fill.len() <= grid / 2 + cam.height / stride, "{} of {grid} grid pixels", fill.len());
+        for p in &fill {
+            // Each is a right-half pixel of the previous frame, lifted at the prediction's pose.
+            let q = t_wc.inverse_transform_point(&p.x_world_m);
+            let uv = cam.project(&q).expect("in front of the camera");
+            let (x, y) = ((uv.x + 0.5) as usize, (uv.y + 0.5) as usize);
+            assert!(x >= cam.width / 2, "pixel {x} has a predicted surface");
+            assert!((q.z - f64::from(previous.depth.at(x, y))).abs() < 1e-6, "depth {} vs {}", q.z, previous.depth.at(x, y));
+            assert!((p.gray_ref.expect("textured") - f64::from(previous.gray.at(x, y))).abs() < 1e-6);
+            let n_cam = t_wc.inverse_transform_vector(&p.n_world);
+            assert!((n_cam - normal(&previous.normals, x, y).expect("a normal").cast::<f64>()).norm() < 1e-6);
+        }
+        // A prediction of another size is refused (not misread).
+        assert!(sample_fill_in(&ModelView::empty(8, 8, t_wc), &previous, stride, 1.5).is_none());
+    }
 
     #[test]
     fn relighting_gives_the_intensity_the_live_view_sees_of_the_same_albedo() {
