@@ -16,7 +16,8 @@
 //!    toward the rigid start; faer's sparse Cholesky, its analysis kept while the pattern holds;
 //! 4. model selection: optionally the rigid motion common to the nodes is factored out of the
 //!    warp (`factor_common`, OpenCV dynafu's `factorCommon`), and the warp is kept only when the
-//!    point-to-plane RMS falls by `min_rms_gain` on average over the last `gain_window_frames`
+//!    point-to-plane RMS over the points that are inliers before and after the solve (`verdict.rs`)
+//!    falls by `min_rms_gain` on average over the last `gain_window_frames`
 //!    solves and its χ² by more than `min_evidence` per unknown (Akaike): a still wall is left
 //!    still (counter `nonrigid_still`); while it is clearly still, the warp is solved on every
 //!    `still_probe_every_frames`-th frame only (counter `nonrigid_probe_skipped`);
@@ -56,6 +57,7 @@ mod solve;
 mod system;
 #[cfg(test)]
 mod tests;
+mod verdict;
 
 pub use params::{CameraMode, NonrigidParams};
 
@@ -72,6 +74,8 @@ use nodes::Nodes;
 use points::ModelPoint;
 use rayon::prelude::*;
 use solve::{Cache, Problem};
+pub(crate) use verdict::Fit;
+use verdict::{Gains, Probe, windowed_gain};
 
 /// The non-rigid tracker.
 pub struct Nonrigid {
@@ -83,29 +87,6 @@ pub struct Nonrigid {
     recent_gains: std::collections::VecDeque<f64>,
     /// The still wall's probe schedule (`still_probe_every_frames`).
     probe: Probe,
-}
-
-/// While the wall is clearly still, the warp is solved on every n-th frame only.
-#[derive(Debug, Clone, Copy, Default)]
-struct Probe {
-    /// Whether the wall is judged clearly still.
-    still: bool,
-    /// Consecutive still verdicts.
-    streak: u32,
-    /// Frames since the last solve while still.
-    skipped: u32,
-}
-
-impl Probe {
-    /// Whether this frame skips the warp solve (and counts it).
-    fn skips(&mut self, every: u32) -> bool {
-        if !self.still || self.skipped + 1 >= every {
-            self.skipped = 0;
-            return false;
-        }
-        self.skipped += 1;
-        true
-    }
 }
 
 impl Plugin for Nonrigid {
@@ -204,57 +185,6 @@ impl Tracker for Nonrigid {
                 ctx.warn(format!("rigid pose kept, no warp: {e}"));
                 ctx.count("nonrigid_fallback", 1.0);
                 Ok(rigid)
-            }
-        }
-    }
-}
-
-/// What a fit did.
-#[allow(clippy::large_enum_variant, reason = "one per frame, matched once; boxing the warp buys nothing")]
-pub(crate) enum Fit {
-    /// The warp and the pose.
-    Solved {
-        /// The pose.
-        t_world_cam: Iso3,
-        /// The warp of the surface near the solved nodes.
-        warp: Deformation,
-        /// Solver figures.
-        outcome: solve::Outcome,
-        /// Nodes solved.
-        nodes: usize,
-        /// Model points bound to them.
-        points: usize,
-        /// Whether the camera was held at the rigid start (`hold_camera_on_step`).
-        held: bool,
-    },
-    /// Why the rigid pose stands.
-    Fallback(String),
-    /// The warp explained too little of the residual (the wall did not move measurably): the
-    /// rigid pose stands, no warp, and this is no failure. The gains, and the mean
-    /// point-to-plane gain of the window they were judged on.
-    Still(Gains, f64),
-}
-
-/// The shares by which a solve lowered the RMS residuals from the rigid start (not finite
-/// where a term had no residual).
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Gains {
-    /// Point to plane.
-    pub icp: f64,
-    /// Photometric.
-    pub rgb: f64,
-}
-
-impl Gains {
-    fn of(outcome: &solve::Outcome) -> Self {
-        Self { icp: 1.0 - outcome.icp_rms_m / outcome.icp_rms_first_m, rgb: 1.0 - outcome.rgb_rms / outcome.rgb_rms_first }
-    }
-
-    /// Files the finite gains as counters.
-    fn count(&self, ctx: &mut Context) {
-        for (name, v) in [("nonrigid_icp_gain", self.icp), ("nonrigid_rgb_gain", self.rgb)] {
-            if v.is_finite() {
-                ctx.count(name, v);
             }
         }
     }
@@ -417,7 +347,7 @@ impl Nonrigid {
         // against the fitted residual, an AIC-like test with `min_evidence` per unknown). The
         // photometric gain is reported, not tested: it is alike on still and moving walls
         // (`docs/results/nonrigid.md`).
-        let (r0, r1) = (outcome.icp_rms_first_m, outcome.icp_rms_m);
+        let (r1, r0) = outcome.icp_common_rms_m;
         let gain_chi2 = outcome.inliers as f64 * ((r0 * r0) / (r1 * r1).max(1e-30) - 1.0);
         let gains = Gains::of(&outcome);
         let judged = windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames);
@@ -446,19 +376,6 @@ impl Nonrigid {
         let (shift, turn) = (moved.translation.vector.norm(), moved.rotation.angle());
         !(shift.is_finite() && turn.is_finite()) || shift > self.params.max_camera_step_m || turn > self.params.max_camera_step_rad
     }
-}
-
-/// The gain `min_rms_gain` is tested on: the mean of the last `window` finite gains, `gain`
-/// included (`gain` itself when it is not finite or the window is one frame).
-fn windowed_gain(recent: &mut std::collections::VecDeque<f64>, gain: f64, window: u32) -> f64 {
-    if !gain.is_finite() {
-        return gain;
-    }
-    recent.push_back(gain);
-    while recent.len() > window.max(1) as usize {
-        recent.pop_front();
-    }
-    recent.iter().sum::<f64>() / recent.len() as f64
 }
 
 /// Removes from every node the rigid motion that best explains the nodes' displacements
