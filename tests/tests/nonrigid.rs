@@ -81,12 +81,13 @@ fn with_fill_in_the_young_map_is_warped_from_the_second_frame() {
     let data = tmp.path().join("moving");
     phantom(&data, 4.0);
     let opts = RunOptions { max_frames: Some(30), ..RunOptions::default() };
-    // Off (the default): only stable surfels are predicted, so the first solve with model
-    // points waits for them (frame 20 measured).
-    run_with(&data, &tmp.path().join("off"), &["pipeline.depth=sensor"], &opts);
+    // Off: only stable surfels are predicted, so the first solve with model points waits for
+    // them (frame 20 measured).
+    run_with(&data, &tmp.path().join("off"), &["pipeline.depth=sensor", "plugins.nonrigid.fill_in_below_share=0"], &opts);
     let off = first_judged_solve(&tmp.path().join("off"));
-    // On: the previous frame fills the prediction's holes, and the warp is fitted from frame 1.
-    run_with(&data, &tmp.path().join("on"), &["pipeline.depth=sensor", "plugins.nonrigid.fill_in_below_share=0.5"], &opts);
+    // On (the default, 0.5): the previous frame fills the prediction's holes, and the warp is
+    // fitted from frame 1.
+    run_with(&data, &tmp.path().join("on"), &["pipeline.depth=sensor"], &opts);
     let on = first_judged_solve(&tmp.path().join("on"));
     assert_eq!(on, Some(1), "with fill-in the first judged solve is at {on:?}");
     assert!(off.is_none_or(|f| f >= 8), "without fill-in the first judged solve is at {off:?}: the prediction is not that young");

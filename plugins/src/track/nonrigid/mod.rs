@@ -132,6 +132,7 @@ impl Tracker for Nonrigid {
                 let previous = self.rigid.previous_level0();
                 let (stride, incidence) = (self.params.point_stride_px as usize, self.params.max_incidence_rad);
                 let mut points = points::sample(m, ctx.rig.camera(), previous.map(|l| &l.gray), stride, incidence);
+                self.probe.on_fill_in = false;
                 if let Some(previous) = previous
                     && self.params.fill_in_below_share > 0.0
                     && points::predicted_share(m, previous) < self.params.fill_in_below_share
@@ -139,6 +140,7 @@ impl Tracker for Nonrigid {
                     match points::sample_fill_in(m, previous, stride, incidence) {
                         Some(fill) => {
                             ctx.count("nonrigid_fill_in_points", fill.len() as f64);
+                            self.probe.on_fill_in = fill.len() > points.len();
                             points.extend(fill);
                         }
                         None => ctx.warn("fill_in skipped: the prediction and the previous frame differ in size"),
@@ -202,7 +204,9 @@ impl Nonrigid {
             }
             Fit::Still(gains, judged) => {
                 let p = &self.params;
-                self.probe.streak += 1;
+                if !self.probe.on_fill_in {
+                    self.probe.streak += 1;
+                }
                 // Clearly still: a window of still verdicts, their mean gain and this one's below
                 // a quarter of the threshold (a probe that is not clearly still ends the probing).
                 let clear = 0.25 * p.min_rms_gain;

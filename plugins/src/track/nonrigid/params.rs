@@ -60,11 +60,11 @@ capsule_slam_framework::plugin_params! {
         /// previous frame's valid depth pixels: a young map (its surfels not yet stable, so not
         /// predicted: the first 10 or so frames) and a fast camera (new wall entering the view)
         /// then warp from the second frame instead of after `stable_confidence` sightings.
-        /// 0: never (default); 1: wherever the prediction has a hole. 0.5 measured (with `d62406a`'s
-        /// gain, before the common inliers): ATE better on
-        /// fast preset 4 with 2 mm (0.408 → 0.312 %, seed 2 0.511 → 0.357 %), mixed elsewhere,
-        /// worse with 4 mm (preset 5 0.601 → 0.752 %; `docs/results/nonrigid.md`).
-        pub fill_in_below_share: f64 = 0.0; unit = "-"; range = 0.0..=1.0;
+        /// 0: never; 1: wherever the prediction has a hole. 0.5 against 0, seed 1, 2 mm: ATE
+        /// lower on presets 1, 2, 4, 5, 7 (preset 4 0.375 → 0.237 %); 4 mm: lower on 1, 2, 5
+        /// (0.502 → 0.381 %), higher on 4 (+5 %) and 7 (0.353 → 0.504 %); rigid and noisy-depth
+        /// rigid runs unchanged (`docs/results/nonrigid.md`).
+        pub fill_in_below_share: f64 = 0.5; unit = "-"; range = 0.0..=1.0;
         /// Fewest model points for a node to be solved.
         pub min_points_per_node: u32 = 8; unit = "-"; range = 1.0..=10000.0;
         /// Gauss-Newton iterations (SurfelWarp: 6 after a 3-iteration rigid pre-solve). 8 measured
