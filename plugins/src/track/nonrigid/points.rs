@@ -48,7 +48,7 @@ pub fn sample(model: &ModelView, cam: &PinholeCamera, previous_gray: Option<&Gra
                 continue;
             }
             let x_cam = cam.unproject(x as f64, y as f64, z);
-            if n_cam.dot(&x_cam.coords).abs() < min_cos * x_cam.coords.norm() {
+            if !faces_camera(&n_cam, &x_cam.coords, min_cos) {
                 continue;
             }
             let gray_ref = previous_gray.map(|g| f64::from(g.at(x, y))).filter(|v| *v > 0.0);
@@ -56,6 +56,12 @@ pub fn sample(model: &ModelView, cam: &PinholeCamera, previous_gray: Option<&Gra
         }
     }
     out
+}
+
+/// Whether a surface at `x_cam` with normal `n_cam` faces the camera within the angle whose
+/// cosine is `min_cos` (either side of the wall).
+fn faces_camera(n_cam: &Vector3<f64>, x_cam: &Vector3<f64>, min_cos: f64) -> bool {
+    n_cam.dot(x_cam).abs() >= min_cos * x_cam.norm()
 }
 
 /// The share of the previous live frame's valid depth pixels that the prediction covers (1 when
@@ -93,7 +99,7 @@ pub fn sample_fill_in(model: &ModelView, previous: &Level, stride: usize, max_in
             }
             let (Some(v), Some(n)) = (vertex(&previous.vertices, x, y), normal(&previous.normals, x, y)) else { continue };
             let (x_cam, n_cam) = (v.cast::<f64>(), n.cast::<f64>());
-            if n_cam.dot(&x_cam).abs() < min_cos * x_cam.norm() {
+            if !faces_camera(&n_cam, &x_cam, min_cos) {
                 continue;
             }
             let gray_ref = Some(f64::from(previous.gray.at(x, y))).filter(|g| *g > 0.0);

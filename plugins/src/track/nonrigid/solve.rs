@@ -224,7 +224,7 @@ impl<'a> Problem<'a> {
         };
         let mut t = *t_start;
         let mut xi = Vector6::<f64>::zeros();
-        let mut first_r2 = Vec::new();
+        let (mut first_r2, mut last_r2) = (Vec::new(), Vec::new());
         let mut out = Outcome {
             t_world_cam: t,
             iterations: 0,
@@ -249,7 +249,7 @@ impl<'a> Problem<'a> {
                 (out.inliers_first, out.icp_rms_first_m, out.rgb_rms_first) = stats;
                 first_r2 = r2.clone();
             }
-            out.icp_common_rms_m = common_rms(&first_r2, &r2);
+            last_r2 = r2;
             out.ms_assemble += ms(clock);
             let clock = std::time::Instant::now();
             let step = factor.solve(&layout.pattern, &g).map_err(solver_error)?;
@@ -270,6 +270,7 @@ impl<'a> Problem<'a> {
             }
         }
         out.t_world_cam = t;
+        out.icp_common_rms_m = common_rms(&first_r2, &last_r2);
         cache.kept = Some((layout.pattern, factor));
         Ok(out)
     }
