@@ -360,6 +360,7 @@ fn a_points_weight_follows_the_live_depths_sigma_and_its_correlation() {
     let (t, points, mut live) = setup(CameraMode::Fixed, 0.0003);
     let mut w = t.params.weights();
     w.w_rgb = 0.0; // point-to-plane rows only
+    w.point_stride_px = 4.0;
     let (problem, _, _) = t.problem(&points).unwrap();
     let t_wc = Iso3::identity();
     let sigma_live = 1e-3;
