@@ -127,12 +127,12 @@ impl Tracker for Nonrigid {
         }
         // The model points read the previous frame's intensity, which registering replaces.
         let clock = std::time::Instant::now();
-        let points = match (model, warps) {
+        let (points, mostly_fill_in) = match (model, warps) {
             (Some(m), true) => {
                 let previous = self.rigid.previous_level0();
                 let (stride, incidence) = (self.params.point_stride_px as usize, self.params.max_incidence_rad);
                 let mut points = points::sample(m, ctx.rig.camera(), previous.map(|l| &l.gray), stride, incidence);
-                self.probe.on_fill_in = false;
+                let mut mostly_fill_in = false;
                 if let Some(previous) = previous
                     && self.params.fill_in_below_share > 0.0
                     && points::predicted_share(m, previous) < self.params.fill_in_below_share
@@ -140,15 +140,15 @@ impl Tracker for Nonrigid {
                     match points::sample_fill_in(m, previous, stride, incidence) {
                         Some(fill) => {
                             ctx.count("nonrigid_fill_in_points", fill.len() as f64);
-                            self.probe.on_fill_in = fill.len() > points.len();
+                            mostly_fill_in = fill.len() > points.len();
                             points.extend(fill);
                         }
                         None => ctx.warn("fill_in skipped: the prediction and the previous frame differ in size"),
                     }
                 }
-                points
+                (points, mostly_fill_in)
             }
-            _ => Vec::new(),
+            _ => (Vec::new(), false),
         };
         let ms_points = clock.elapsed().as_secs_f64() * 1e3;
         let (rigid, _) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?;
@@ -172,7 +172,7 @@ impl Tracker for Nonrigid {
         ctx.count("nonrigid_nodes_added", added as f64);
         ctx.count("ms_nonrigid_points", ms_points);
         let clock = std::time::Instant::now();
-        let outcome = self.solve(&points, level, &rigid, ctx);
+        let outcome = self.solve(&points, mostly_fill_in, level, &rigid, ctx);
         ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, clock.elapsed().as_secs_f64() * 1e3);
         self.rigid.restore_previous(pyramid);
         match outcome {
@@ -193,8 +193,18 @@ impl Tracker for Nonrigid {
 }
 
 impl Nonrigid {
-    /// The joint solve from the rigid result, with the counters and fallback warnings.
-    fn solve(&mut self, points: &[ModelPoint], level: &Level, rigid: &TrackResult, ctx: &mut Context) -> Result<Option<TrackResult>, StageError> {
+    /// The joint solve from the rigid result, with the counters and fallback warnings. When the
+    /// model points are `mostly_fill_in` (the previous frame's, `fill_in_below_share`), the warp
+    /// can explain one frame's motion only, so a still verdict says nothing of the wall and does
+    /// not lengthen the still-probe streak.
+    fn solve(
+        &mut self,
+        points: &[ModelPoint],
+        mostly_fill_in: bool,
+        level: &Level,
+        rigid: &TrackResult,
+        ctx: &mut Context,
+    ) -> Result<Option<TrackResult>, StageError> {
         match self.fit(points, level, &rigid.t_world_cam)? {
             Fit::Fallback(why) => {
                 self.probe = Probe::default();
@@ -204,7 +214,7 @@ impl Nonrigid {
             }
             Fit::Still(gains, judged) => {
                 let p = &self.params;
-                if !self.probe.on_fill_in {
+                if !mostly_fill_in {
                     self.probe.streak += 1;
                 }
                 // Clearly still: a window of still verdicts, their mean gain and this one's below

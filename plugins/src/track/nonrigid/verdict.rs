@@ -16,10 +16,6 @@ pub(crate) struct Probe {
     pub(crate) streak: u32,
     /// Frames since the last solve while still.
     pub(crate) skipped: u32,
-    /// Whether this frame's model points are mostly the previous frame's fill-in
-    /// (`fill_in_below_share`): its warp can then explain one frame's motion only, so a still
-    /// verdict says nothing of the wall and does not lengthen the streak.
-    pub(crate) on_fill_in: bool,
 }
 
 impl Probe {
