@@ -106,6 +106,8 @@ fn steady_starts_mm(lead: f64) -> Vec<f64> {
         min_rms_gain: 0.0,
         gain_window_frames: 1,
         warp_lead: lead,
+        // No prior on sliding: the test's displacement is along z, not along the normal.
+        sigma_slide_m: 0.0,
         ..Default::default()
     };
     let mut t = Nonrigid::new(params).unwrap();
