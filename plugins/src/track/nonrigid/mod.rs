@@ -290,6 +290,7 @@ impl Nonrigid {
             let nodes = &graph.deformation.nodes;
             nb.retain(|&n| (nodes[n].position_m - g).norm() <= p.max_edge_m && normals[j].dot(&normals[n]) >= cos_edge);
         }
+        let normals = priors::smoothed_normals(&normals, &graph.neighbours, p.slide_normal_passes);
         let bound: Vec<(&ModelPoint, Vec<(usize, f64)>)> = points
             .par_iter()
             .zip(&near)

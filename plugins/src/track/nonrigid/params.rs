@@ -120,6 +120,10 @@ capsule_slam_framework::plugin_params! {
         /// motion (ATE on the deforming grid −12 to −16 % in sum, `docs/results/nonrigid.md`). A
         /// tissue that slides along itself (breathing) wants a looser one. 0: off.
         pub sigma_slide_m: f64 = 0.000025; unit = "m"; range = 0.0..=10.0;
+        /// Passes of averaging each node's normal with its graph neighbours' before the slide
+        /// prior takes its tangent plane (0: the node's own normal, which tilts with the wave's
+        /// slope; `docs/results/nonrigid.md`).
+        pub slide_normal_passes: u32 = 1; unit = "-"; range = 0.0..=16.0;
         /// Per-frame node R − I prior (a twist node's ω counts as its first-order ‖R − I‖_F = √2 ‖ω‖). 0: off.
         pub sigma_step_rot: f64 = 0.02; unit = "-"; range = 0.0..=10.0;
         /// Camera prior toward the rigid start, translation. 0: off.

@@ -3,7 +3,7 @@
 //! goes to the camera, nonrigid.md §5), the per-frame step priors, the slide prior and the
 //! camera prior toward the rigid start (`solve.rs` has the energy).
 
-use nalgebra::{Matrix3, Vector6};
+use nalgebra::{Matrix3, Vector3, Vector6};
 
 use crate::common::ed_graph::NodeModel;
 
@@ -83,4 +83,26 @@ impl Problem<'_> {
             }
         }
     }
+}
+
+/// The directions the slide prior holds a node to: each node's normal averaged with its graph
+/// neighbours' (`passes` times; 0: the nodes' own normals). A node's own normal follows the
+/// wave's slope (up to 0.5 rad for a 4 mm wave of 50 mm wavelength), so motion "along the normal"
+/// would slide the wall along the tube by up to half the wall's own motion; averaged over the
+/// node's neighbourhood (± 1–2 node spacings, a good part of a wavelength) it points nearer the
+/// direction the wall moves in.
+pub(super) fn smoothed_normals(normals: &[Vector3<f64>], neighbours: &[Vec<usize>], passes: u32) -> Vec<Vector3<f64>> {
+    let mut out = normals.to_vec();
+    for _ in 0..passes {
+        out = neighbours
+            .iter()
+            .enumerate()
+            .map(|(j, nb)| {
+                let sum = nb.iter().fold(out[j], |acc, &n| acc + out[n]);
+                let len = sum.norm();
+                if len > 1e-9 { sum / len } else { out[j] }
+            })
+            .collect();
+    }
+    out
 }

@@ -452,3 +452,38 @@ fn a_camera_step_beyond_the_limit_holds_the_camera_and_still_warps() {
         }
     }
 }
+
+#[test]
+fn the_slide_prior_holds_nodes_nearer_the_direction_a_wave_moves_the_wall() {
+    // Nodes 8 mm apart on a wall z = A sin(2π x / λ) (a 4 mm wave of 50 mm wavelength), which
+    // moves along z; each node's neighbours are the 8 around it on the grid.
+    let (amp_m, wavelength_m, spacing_m, side) = (0.004, 0.05, 0.008, 9usize);
+    let tau = std::f64::consts::TAU;
+    let mut normals = Vec::new();
+    let mut neighbours = Vec::new();
+    for i in 0..side {
+        for j in 0..side {
+            let x = i as f64 * spacing_m;
+            let slope = amp_m * tau / wavelength_m * (tau * x / wavelength_m).cos();
+            normals.push(Vector3::new(-slope, 0.0, 1.0).normalize());
+            let mut nb = Vec::new();
+            for (di, dj) in [(-1i64, -1i64), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)] {
+                let (a, b) = (i as i64 + di, j as i64 + dj);
+                if (0..side as i64).contains(&a) && (0..side as i64).contains(&b) {
+                    nb.push(a as usize * side + b as usize);
+                }
+            }
+            neighbours.push(nb);
+        }
+    }
+    // The largest angle between a node's slide direction and the wall's motion, degrees.
+    let tilt = |n: &[Vector3<f64>]| n.iter().map(|v| v.z.abs().min(1.0).acos().to_degrees()).fold(0.0, f64::max);
+    let own = super::priors::smoothed_normals(&normals, &neighbours, 0);
+    assert_eq!(own, normals, "no passes: the nodes' own normals");
+    let (raw, one, two) =
+        (tilt(&own), tilt(&super::priors::smoothed_normals(&normals, &neighbours, 1)), tilt(&super::priors::smoothed_normals(&normals, &neighbours, 2)));
+    assert!((raw - 26.7).abs() < 0.2, "the wave's largest slope: {raw:.2}°");
+    assert!(one < 0.8 * raw && two < 0.8 * one, "tilts {raw:.1}°, {one:.1}° after one pass, {two:.1}° after two");
+    // A node without neighbours keeps its normal.
+    assert_eq!(super::priors::smoothed_normals(&normals[..1], &[Vec::new()], 3), normals[..1].to_vec());
+}
