@@ -162,3 +162,45 @@ fn a_grid_equals_its_runs_resumes_and_collects_jobs_run_elsewhere() {
         }
     }
 }
+
+/// The plans shipped in `docs/results/compare/`.
+fn shipped_plans() -> Vec<std::path::PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/results/compare");
+    let mut plans: Vec<_> = std::fs::read_dir(&dir).expect("docs/results/compare").map(|e| e.expect("an entry").path()).filter(|p| p.extension().is_some_and(|e| e == "toml")).collect();
+    plans.sort();
+    plans
+}
+
+#[test]
+fn every_shipped_plan_parses_and_its_variants_resolve() {
+    let plans = shipped_plans();
+    assert!(plans.len() >= 2, "{plans:?}");
+    let tmp = tempfile::tempdir().unwrap();
+    let cache = tmp.path().join("cache");
+    capsule_slam_tests::fixtures::write_dataset(&tmp.path().join("seq"), 3);
+    for (k, plan) in plans.iter().enumerate() {
+        // The plan as shipped: it parses and checks clean; `--collect` makes no phantom, runs
+        // nothing, and its one complaint is that no cell has run here.
+        let out = tmp.path().join(format!("collect{k}"));
+        let (_, _, err) = output(&cache, &["compare", plan.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collect", "--no-plots"]);
+        assert!(err.contains("cells are not complete") && !err.contains("problem(s)"), "{}: {err}", plan.display());
+        // Its variants on a tiny sequence: every config key and plugin they name exists (each
+        // cell's config is resolved before a job is emitted).
+        let text = std::fs::read_to_string(plan).unwrap();
+        let parsed: toml::Table = text.parse().unwrap();
+        let variants = parsed["variant"].as_array().expect("[[variant]]").clone();
+        let mut tiny = toml::Table::new();
+        tiny.insert("variant".into(), toml::Value::Array(variants.clone()));
+        let mut input = toml::Table::new();
+        input.insert("path".into(), toml::Value::String("seq".into()));
+        tiny.insert("input".into(), toml::Value::Array(vec![toml::Value::Table(input)]));
+        let p = tmp.path().join(format!("tiny{k}.toml"));
+        std::fs::write(&p, toml::to_string(&tiny).unwrap()).unwrap();
+        let jobs = tmp.path().join(format!("jobs{k}.txt"));
+        let out = tmp.path().join(format!("tiny{k}"));
+        let (ok, _, err) = output(&cache, &["compare", p.to_str().unwrap(), "--out", out.to_str().unwrap(), "--emit-jobs", jobs.to_str().unwrap()]);
+        assert!(ok, "{}: {err}", plan.display());
+        let emitted = std::fs::read_to_string(&jobs).unwrap();
+        assert_eq!(emitted.lines().filter(|l| l.contains(" run ")).count(), variants.len(), "{}: {emitted}", plan.display());
+    }
+}
