@@ -166,7 +166,11 @@ fn a_grid_equals_its_runs_resumes_and_collects_jobs_run_elsewhere() {
 /// The plans shipped in `docs/results/compare/`.
 fn shipped_plans() -> Vec<std::path::PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/results/compare");
-    let mut plans: Vec<_> = std::fs::read_dir(&dir).expect("docs/results/compare").map(|e| e.expect("an entry").path()).filter(|p| p.extension().is_some_and(|e| e == "toml")).collect();
+    let mut plans: Vec<_> = std::fs::read_dir(&dir)
+        .expect("docs/results/compare")
+        .map(|e| e.expect("an entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
     plans.sort();
     plans
 }
