@@ -20,45 +20,14 @@ import os
 import numpy as np
 from scipy.spatial import cKDTree
 
-TYPES = {"float": "<f4", "double": "<f8", "uchar": "u1", "uint": "<u4", "int": "<i4"}
+from common_mode import kabsch, read_ply, xyz  # the same folder
+
 BINS = [(0, 0), (1, 5), (6, 10), (11, 20), (21, 30)]
-
-
-def read_ply(path):
-    """The vertices of a binary little-endian PLY as a structured array."""
-    with open(path, "rb") as f:
-        props, n = [], 0
-        while (line := f.readline().decode().strip()) != "end_header":
-            if line.startswith("element vertex"):
-                n = int(line.split()[2])
-            elif line.startswith("property"):
-                _, kind, name = line.split()
-                props.append((name, TYPES[kind]))
-        return np.frombuffer(f.read(), dtype=np.dtype(props), count=n)
-
-
-def positions(v):
-    return np.stack([v["x"], v["y"], v["z"]], 1).astype(float)
-
-
-def normals(v):
-    return np.stack([v["nx"], v["ny"], v["nz"]], 1).astype(float)
-
-
-def umeyama(src, dst):
-    """The rigid motion (R, t) that best maps src onto dst."""
-    ms, md = src.mean(0), dst.mean(0)
-    u, _, vt = np.linalg.svd((dst - md).T @ (src - ms) / len(src))
-    e = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        e[2, 2] = -1
-    r = u @ e @ vt
-    return r, md - r @ ms
 
 
 def plane_distance(points, surface):
     """Point-to-plane distance of each point to its nearest point of a true surface."""
-    g, gn = positions(surface), normals(surface)
+    g, gn = xyz(surface), xyz(surface, "n")
     _, i = cKDTree(g).query(points)
     return np.abs(((points - g[i]) * gn[i]).sum(1))
 
@@ -73,10 +42,10 @@ def main():
     est = np.loadtxt(os.path.join(a.run, "trajectory.txt"))[:, 1:4]
     gt = np.loadtxt(os.path.join(a.sequence, "groundtruth.txt"))[:, 1:4]
     last = len(gt) - 1
-    r, t = umeyama(est[-a.align:], gt[-a.align:]) if a.align else umeyama(est, gt)
+    r, t = kabsch(est[-a.align:], gt[-a.align:]) if a.align else kabsch(est, gt)
     m = read_ply(os.path.join(a.run, "map.ply"))
     sel = m["t"].astype(int) >= last - a.window
-    p = positions(m)[sel] @ r.T + t
+    p = xyz(m)[sel] @ r.T + t
     seen = m["t"][sel].astype(int)
     age = last - seen
     now = plane_distance(p, read_ply(os.path.join(a.sequence, f"gt_surface_{last:06d}.ply")))
