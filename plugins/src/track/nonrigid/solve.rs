@@ -8,8 +8,8 @@
 //! et al. 2007 Eqs. (3)–(4); ĝ_j the node's reference position, the rest-shape prior that gives
 //! the motion common to all nodes to the camera (nonrigid.md §5); n_j the node's normal averaged
 //! with its graph neighbours' (`slide_normal_passes`), the slide prior ours; ξ the camera's
-//! departure from the rigid start). Bindings of model points to nodes are fixed for the frame, correspondences
-//! are re-projected every iteration (SurfelWarp), full steps (no line search).
+//! departure from the rigid start). Bindings of model points to nodes are fixed for the frame,
+//! correspondences are re-projected every iteration (SurfelWarp), full steps (no line search).
 
 use capsule_slam_framework::geometry::{exp_se3, renormalised};
 use capsule_slam_framework::{Iso3, StageError};
