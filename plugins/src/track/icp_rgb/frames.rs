@@ -9,6 +9,7 @@ use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
 use crate::common::maps::{GeometryParams, NormalMap, VertexMap, geometry, normal_map, vertex_map};
 use crate::common::masks::dilate;
 use crate::common::pyramid::{half_depth, half_gray};
+use rayon::prelude::*;
 
 /// One pyramid level.
 #[derive(Clone)]
@@ -124,7 +125,7 @@ fn set_sigma(levels: &mut [Level], sigma: &DepthMap, correlation_px: f64) {
     for (l, level) in levels.iter_mut().enumerate() {
         let (w, h) = level.depth.size();
         let step = 1usize << l;
-        level.sigma = Some(DepthMap::from_fn(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
+        level.sigma = Some(DepthMap::from_fn_par(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
         level.sigma_correlation_px = correlation_px / step as f64;
     }
 }
@@ -151,20 +152,20 @@ pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &Pinh
         }
         (0.0, 0.0, [0.0; 3], 0.0)
     };
-    let picked = capsule_slam_framework::Image::<f32, 6>::from_fn_par(w, h, |x, y| {
-        let (d, g, n, s) = pick(x, y);
-        [d, g, n[0], n[1], n[2], s]
-    });
-    let depth = DepthMap::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[0]]);
-    let gray = GrayF32::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[1]]);
-    let normals = NormalMap::from_fn_par(w, h, |x, y| {
-        let v = picked.pixel(x, y);
-        [v[2], v[3], v[4]]
+    // One parallel pass over the rows writes the four images.
+    let (mut depth, mut gray, mut normals, mut sigma) = (DepthMap::new(w, h), GrayF32::new(w, h), NormalMap::new(w, h), DepthMap::new(w, h));
+    let rows = depth.data_mut().par_chunks_mut(w.max(1)).zip(gray.data_mut().par_chunks_mut(w.max(1)));
+    let rows = rows.zip(normals.data_mut().par_chunks_mut(3 * w.max(1))).zip(sigma.data_mut().par_chunks_mut(w.max(1)));
+    rows.enumerate().for_each(|(y, (((d_row, g_row), n_row), s_row))| {
+        for x in 0..w {
+            let (d, g, n, s) = pick(x, y);
+            (d_row[x], g_row[x], s_row[x]) = (d, g, s);
+            n_row[3 * x..3 * x + 3].copy_from_slice(&n);
+        }
     });
     if depth.data().iter().all(|d| *d <= 0.0) {
         return None;
     }
-    let sigma = DepthMap::from_fn_par(w, h, |x, y| [picked.pixel(x, y)[5]]);
     let mut out = pyramid(depth, gray, (None, Some(normals)), cam, levels, prep);
     if sigma.data().iter().any(|s| *s > 0.0) {
         set_sigma(&mut out, &sigma, 0.0);

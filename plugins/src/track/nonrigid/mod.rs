@@ -242,6 +242,7 @@ impl Nonrigid {
                 ctx.count("ms_nonrigid_analyse", outcome.ms_analyse);
                 ctx.count("ms_nonrigid_assemble", outcome.ms_assemble);
                 ctx.count("ms_nonrigid_factor", outcome.ms_factor);
+                ctx.count("ms_nonrigid_problem", outcome.ms_problem);
                 Ok(Some(TrackResult {
                     t_world_cam,
                     status: TrackStatus::Tracked,
@@ -266,11 +267,10 @@ impl Nonrigid {
             Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
         // Each point's nodes within reach, found once for both bindings below.
         let near: Vec<Vec<usize>> = points.par_iter().map(|q| self.nodes.within(&q.x_world_m, reach)).collect();
+        let first: Vec<Vec<(usize, f64)>> = points.par_iter().zip(&near).map(|(q, near)| all.influences_among(&q.x_world_m, near.iter().copied())).collect();
         let mut used = vec![0usize; all.nodes.len()];
-        for (q, near) in points.iter().zip(&near) {
-            for (i, _) in all.influences_among(&q.x_world_m, near.iter().copied()) {
-                used[i] += 1;
-            }
+        for (i, _) in first.iter().flatten() {
+            used[*i] += 1;
         }
         let solve_ids: Vec<usize> = (0..used.len()).filter(|&i| used[i] >= p.min_points_per_node as usize).collect();
         if solve_ids.is_empty() {
@@ -314,9 +314,11 @@ impl Nonrigid {
     /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
     /// the nodes near them; moves the nodes when it succeeds.
     pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3) -> Result<Fit, StageError> {
+        let clock = std::time::Instant::now();
         let Some((mut problem, solve_ids, used)) = self.problem(points) else {
             return Ok(Fit::Fallback("no node has enough model points".into()));
         };
+        let ms_problem = clock.elapsed().as_secs_f64() * 1e3;
         let p = &self.params;
         let mut outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
         let mut held = false;
@@ -329,6 +331,7 @@ impl Nonrigid {
             outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
             held = true;
         }
+        outcome.ms_problem = ms_problem;
         let share = outcome.inliers as f64 / points.len().max(1) as f64;
         let mut d = problem.graph.deformation;
         if p.factor_common {

@@ -93,9 +93,14 @@ pub struct Problem<'a> {
 /// it is an inlier, in order.
 pub(crate) type Stats = ((usize, f64, f64), Vec<Option<f64>>);
 
-/// One chunk's part of `accumulate`: its accumulator, the counts and sums of squares of the
-/// point-to-plane and photometric residuals, and its points' squared point-to-plane residuals.
-type ChunkSums = (Accumulator, [usize; 2], [f64; 2], Vec<Option<f64>>);
+/// One chunk's part of `accumulate` besides its accumulator: the counts and sums of squares of
+/// the point-to-plane and photometric residuals, and its points' squared point-to-plane
+/// residuals.
+type ChunkSums = ([usize; 2], [f64; 2], Vec<Option<f64>>);
+
+/// The model points are summed in this many fixed chunks, in order: the same sums on any
+/// thread count.
+const CHUNKS: usize = 4;
 
 /// What a solve did.
 pub struct Outcome {
@@ -129,6 +134,9 @@ pub struct Outcome {
     pub ms_assemble: f64,
     /// Time factorising and solving, ms (all iterations).
     pub ms_factor: f64,
+    /// Time building the problem before the solve (the nodes with enough points, the
+    /// bindings, the graph), ms: set by the caller that built it.
+    pub ms_problem: f64,
 }
 
 /// A problem's pattern and the slots of its terms.
@@ -141,6 +149,8 @@ pub(crate) struct Layout {
     diag: Vec<usize>,
     /// Per node, the slots of its translation block's lower triangle, (a, b) for b ≤ a, row major.
     translation_slots: Vec<[usize; 6]>,
+    /// One accumulator per chunk of model points, zeroed and refilled every iteration.
+    parts: Vec<Accumulator>,
 }
 
 /// The pattern and factorisation kept between frames.
@@ -172,7 +182,7 @@ impl<'a> Problem<'a> {
     pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
         let model = self.graph.model;
         let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera, model);
-        let bound: Vec<BoundPoint> = self.points.iter().map(|(p, b)| self.bound_point(&pattern, p, b)).collect();
+        let bound: Vec<BoundPoint> = self.points.par_iter().map(|(p, b)| self.bound_point(&pattern, p, b)).collect();
         let mut reg_slots = Vec::new();
         self.graph.visit(&Self::graph_weights(w), |_, row| {
             for &(a, _) in row {
@@ -198,14 +208,15 @@ impl<'a> Problem<'a> {
                 s
             })
             .collect();
-        Ok(Layout { pattern, bound, reg_slots, diag, translation_slots })
+        let parts = (0..self.points.len().div_ceil(chunk_len(self.points.len()))).map(|_| pattern.accumulator()).collect();
+        Ok(Layout { pattern, bound, reg_slots, diag, translation_slots, parts })
     }
 
     /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
     /// camera departure `xi`; returns `JᵀWr` and the residual statistics.
     pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, Stats) {
-        let (acc, stats) = self.accumulate(level, t, w, &layout.pattern, &layout.bound);
-        let mut g = layout.pattern.scatter(&acc);
+        let stats = self.accumulate(level, t, w, &mut layout.parts, &layout.bound);
+        let mut g = layout.pattern.scatter(&layout.parts);
         self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
         self.add_priors(w, xi, &mut layout.pattern, &layout.diag, &mut g);
         self.add_slide_prior(w, &mut layout.pattern, &layout.translation_slots, &mut g);
@@ -241,6 +252,7 @@ impl<'a> Problem<'a> {
             ms_setup: ms(clock),
             ms_assemble: 0.0,
             ms_factor: 0.0,
+            ms_problem: 0.0,
         };
         for _ in 0..w.iterations {
             let clock = std::time::Instant::now();
@@ -276,16 +288,17 @@ impl<'a> Problem<'a> {
         Ok(out)
     }
 
-    /// The data terms at pose `t`: the accumulator and the residual statistics, summed over four
-    /// fixed chunks in order (the same sums on any thread count).
-    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, pattern: &Pattern, bound: &[BoundPoint]) -> (Accumulator, Stats) {
-        let chunk = self.points.len().div_ceil(4).max(1);
-        let parts: Vec<ChunkSums> = self
+    /// The data terms at pose `t` summed into `parts` (one accumulator per fixed chunk of
+    /// points, `CHUNKS`, reset first); returns the residual statistics.
+    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, parts: &mut [Accumulator], bound: &[BoundPoint]) -> Stats {
+        let chunk = chunk_len(self.points.len());
+        let sums: Vec<ChunkSums> = self
             .points
             .par_chunks(chunk)
             .zip(bound.par_chunks(chunk))
-            .map(|(pts, bound)| {
-                let mut acc = pattern.accumulator();
+            .zip(parts.par_iter_mut())
+            .map(|((pts, bound), acc)| {
+                acc.reset();
                 let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
                 let mut icp_r2 = Vec::with_capacity(pts.len());
                 let mut factors = Vec::new();
@@ -304,14 +317,12 @@ impl<'a> Problem<'a> {
                         }
                     }
                 }
-                (acc, n, sse, icp_r2)
+                (n, sse, icp_r2)
             })
             .collect();
-        let mut total = pattern.accumulator();
         let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
         let mut icp_r2 = Vec::with_capacity(self.points.len());
-        for (a, pn, ps, r2) in &parts {
-            total.merge(a);
+        for (pn, ps, r2) in &sums {
             icp_r2.extend_from_slice(r2);
             for k in 0..2 {
                 n[k] += pn[k];
@@ -319,7 +330,7 @@ impl<'a> Problem<'a> {
             }
         }
         let rms = |k: usize| if n[k] == 0 { f64::INFINITY } else { (sse[k] / n[k] as f64).sqrt() };
-        (total, ((n[0], rms(0), rms(1)), icp_r2))
+        ((n[0], rms(0), rms(1)), icp_r2)
     }
 
     /// One point's residuals given to `sink` (their Jacobians for node k are
@@ -441,6 +452,11 @@ fn largest_translation_m(step: &[f64], nodes: usize, camera: bool, model: NodeMo
     let u = model.unknowns();
     let node = (0..nodes).map(|j| at(u * j + model.translation())).fold(0.0, f64::max);
     if camera { node.max(at(u * nodes)) } else { node }
+}
+
+/// Model points per chunk of `accumulate` (`CHUNKS` chunks, at least one point each).
+fn chunk_len(points: usize) -> usize {
+    points.div_ceil(CHUNKS).max(1)
 }
 
 fn ms(since: std::time::Instant) -> f64 {

@@ -8,6 +8,7 @@
 
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use nalgebra::{Matrix3, Vector3, Vector6};
+use rayon::slice::ParallelSliceMut;
 
 use crate::common::ed_graph::NodeModel;
 use crate::common::sparse_llt::{SparseLlt, SparseLltError};
@@ -39,7 +40,9 @@ impl Pattern {
     /// and every block entry's value slot is recorded on the way.
     pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool, model: NodeModel) -> Self {
         let mut blocks: Vec<(usize, usize)> = (0..nodes).map(|i| (i, i)).chain(pairs.iter().map(|&(i, j)| (i.max(j), i.min(j)))).collect();
-        blocks.sort_unstable_by_key(|&(i, j)| (j, i));
+        // Tens of thousands of pairs (each model point's), most of them repeated: sorted in
+        // parallel (equal pairs are identical, so the order is the sequential sort's).
+        blocks.par_sort_unstable_by_key(|&(i, j)| (j, i));
         blocks.dedup();
         let u = model.unknowns();
         let cam0 = u * nodes;
@@ -131,25 +134,28 @@ impl Pattern {
         }
     }
 
-    /// Writes the accumulated data blocks into the matrix values (zeroing the rest) and
-    /// returns the gradient.
-    pub fn scatter(&mut self, acc: &Accumulator) -> Vec<f64> {
+    /// Writes the data blocks of the chunk accumulators `parts`, summed in order, into the
+    /// matrix values (zeroing the rest) and returns the gradient: per entry `((p₀ + p₁) + p₂) +
+    /// …`, the sums of merging the parts into a zeroed accumulator and scattering it, in one
+    /// pass and without that accumulator.
+    pub fn scatter(&mut self, parts: &[Accumulator]) -> Vec<f64> {
         let vals = self.a.val_mut();
         vals.iter_mut().for_each(|v| *v = 0.0);
-        for (&s, v) in self.block_slots.iter().zip(&acc.blocks) {
+        let sum = |at: usize, of: fn(&Accumulator) -> &[f64]| parts.iter().fold(0.0, |acc, p| acc + of(p)[at]);
+        for (e, &s) in self.block_slots.iter().enumerate() {
             if s != usize::MAX {
-                vals[s] += v;
+                vals[s] = sum(e, |p| &p.blocks);
             }
         }
-        for (&s, v) in self.camera_slots.iter().zip(&acc.camera_node) {
-            vals[s] += v;
+        for (e, &s) in self.camera_slots.iter().enumerate() {
+            vals[s] = sum(e, |p| &p.camera_node);
         }
-        for (e, v) in acc.camera.iter().enumerate() {
+        for e in 0..36 {
             if self.camera_block[e] != usize::MAX {
-                vals[self.camera_block[e]] += v;
+                vals[self.camera_block[e]] = sum(e, |p| &p.camera);
             }
         }
-        acc.g.clone()
+        (0..self.unknowns()).map(|u| sum(u, |p| &p.g)).collect()
     }
 }
 
@@ -351,13 +357,13 @@ impl Accumulator {
         }
     }
 
-    /// Adds another accumulator of the same pattern.
-    pub fn merge(&mut self, o: &Accumulator) {
-        self.blocks.iter_mut().zip(&o.blocks).for_each(|(x, y)| *x += y);
-        self.camera_node.iter_mut().zip(&o.camera_node).for_each(|(x, y)| *x += y);
-        self.camera.iter_mut().zip(&o.camera).for_each(|(x, y)| *x += y);
-        self.g.iter_mut().zip(&o.g).for_each(|(x, y)| *x += y);
-        self.energy += o.energy;
+    /// Zeroes every sum, keeping the buffers (one accumulator per chunk serves every iteration).
+    pub fn reset(&mut self) {
+        self.blocks.fill(0.0);
+        self.camera_node.fill(0.0);
+        self.camera = [0.0; 36];
+        self.g.fill(0.0);
+        self.energy = 0.0;
     }
 }
 
