@@ -8,6 +8,7 @@
 
 use nalgebra::{Point3, Vector3};
 
+use rayon::prelude::*;
 use rustc_hash::FxHashMap as HashMap;
 
 use super::points::ModelPoint;
@@ -64,9 +65,11 @@ impl Nodes {
     /// were refused by the cap.
     pub fn cover(&mut self, points: &[ModelPoint], spacing_m: f64, max_nodes: usize) -> (usize, usize) {
         let (mut added, mut refused) = (0, 0);
-        for p in points {
-            let near = self.within(&p.x_world_m, spacing_m);
-            if near.iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0) {
+        // A point the nodes from before cover stays covered (nodes are only added here): those
+        // are found in parallel, and the raster-order pass visits the others only.
+        let covered: Vec<bool> = points.par_iter().map(|p| self.covers(p, spacing_m)).collect();
+        for p in points.iter().zip(&covered).filter(|(_, c)| !**c).map(|(p, _)| p) {
+            if self.covers(p, spacing_m) {
                 continue;
             }
             if self.nodes.len() >= max_nodes {
@@ -79,6 +82,11 @@ impl Nodes {
             added += 1;
         }
         (added, refused)
+    }
+
+    /// Whether a node within `spacing_m` of the point faces its way.
+    fn covers(&self, p: &ModelPoint, spacing_m: f64) -> bool {
+        self.within(&p.x_world_m, spacing_m).iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0)
     }
 
     /// Re-bins every node after positions changed.
