@@ -266,7 +266,8 @@ impl Nonrigid {
         let all =
             Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
         // Each point's nodes within reach, found once for both bindings below.
-        let near: Vec<Vec<usize>> = points.par_iter().map(|q| self.nodes.within(&q.x_world_m, reach)).collect();
+        let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
+        let near = self.nodes.within_each(&positions, reach);
         let first: Vec<Vec<(usize, f64)>> = points.par_iter().zip(&near).map(|(q, near)| all.influences_among(&q.x_world_m, near.iter().copied())).collect();
         let mut used = vec![0usize; all.nodes.len()];
         for (i, _) in first.iter().flatten() {

@@ -60,6 +60,36 @@ impl Nodes {
         out
     }
 
+    /// [`Nodes::within`] for many points at once: the 27 cells around each point's cell are
+    /// gathered once per cell (ascending), then filtered per point in parallel; the same lists.
+    pub fn within_each(&self, points: &[Point3<f64>], radius_m: f64) -> Vec<Vec<usize>> {
+        let mut hoods: HashMap<[i64; 3], Vec<usize>> = HashMap::default();
+        for p in points {
+            let c = self.cell(p);
+            hoods.entry(c).or_insert_with(|| {
+                let mut hood = Vec::new();
+                for dz in -1..=1 {
+                    for dy in -1..=1 {
+                        for dx in -1..=1 {
+                            if let Some(v) = self.cells.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
+                                hood.extend_from_slice(v);
+                            }
+                        }
+                    }
+                }
+                hood.sort_unstable();
+                hood
+            });
+        }
+        points
+            .par_iter()
+            .map(|p| {
+                let hood = hoods.get(&self.cell(p)).map_or(&[][..], |h| &h[..]);
+                hood.iter().copied().filter(|&i| (self.nodes[i].position_m - p).norm() <= radius_m).collect()
+            })
+            .collect()
+    }
+
     /// Adds a node at every model point with no node within `spacing_m` (the point's normal
     /// facing the same way), up to `max_nodes` in all; returns how many were added and how many
     /// were refused by the cap.
@@ -67,7 +97,10 @@ impl Nodes {
         let (mut added, mut refused) = (0, 0);
         // A point the nodes from before cover stays covered (nodes are only added here): those
         // are found in parallel, and the raster-order pass visits the others only.
-        let covered: Vec<bool> = points.par_iter().map(|p| self.covers(p, spacing_m)).collect();
+        let positions: Vec<Point3<f64>> = points.iter().map(|p| p.x_world_m).collect();
+        let near = self.within_each(&positions, spacing_m);
+        let faces = |p: &ModelPoint, near: &[usize]| near.iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0);
+        let covered: Vec<bool> = points.par_iter().zip(&near).map(|(p, near)| faces(p, near)).collect();
         for p in points.iter().zip(&covered).filter(|(_, c)| !**c).map(|(p, _)| p) {
             if self.covers(p, spacing_m) {
                 continue;
@@ -127,5 +160,20 @@ mod tests {
         let (a, r) = capped.cover(&pts, 0.008, 5);
         assert_eq!((a, capped.nodes.len()), (5, 5));
         assert!(r > 0);
+    }
+
+    #[test]
+    fn the_batched_search_finds_what_the_single_one_does() {
+        let pts: Vec<ModelPoint> = (0..41).flat_map(|i| (0..41).map(move |j| point(i as f64 * 0.001, j as f64 * 0.001))).collect();
+        let mut n = Nodes::new(0.016);
+        n.cover(&pts, 0.004, 4096);
+        // Points on the sheet, off it and beyond its edges, at two radii.
+        let probes: Vec<Point3<f64>> = (0..60).map(|i| Point3::new(-0.03 + 0.0017 * i as f64, 0.0007 * i as f64, 0.03 + 0.0002 * (i % 7) as f64)).collect();
+        for radius in [0.006, 0.016] {
+            let batched = n.within_each(&probes, radius);
+            let single: Vec<Vec<usize>> = probes.iter().map(|p| n.within(p, radius)).collect();
+            assert_eq!(batched, single);
+            assert!(single.iter().any(|v| v.len() > 1) && single.iter().any(|v| v.is_empty()), "the probes see some nodes and miss others");
+        }
     }
 }
