@@ -45,49 +45,39 @@ impl Nodes {
 
     /// Indices of the nodes within `radius_m` (≤ the cell width) of `p`, ascending.
     pub fn within(&self, p: &Point3<f64>, radius_m: f64) -> Vec<usize> {
-        let c = self.cell(p);
-        let mut out = Vec::new();
-        for dz in -1..=1 {
-            for dy in -1..=1 {
-                for dx in -1..=1 {
-                    if let Some(v) = self.cells.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                        out.extend(v.iter().copied().filter(|&i| (self.nodes[i].position_m - p).norm() <= radius_m));
-                    }
-                }
-            }
-        }
-        out.sort_unstable();
-        out
+        self.close(p, &self.hood(self.cell(p)), radius_m)
     }
 
-    /// [`Nodes::within`] for many points at once: the 27 cells around each point's cell are
-    /// gathered once per cell (ascending), then filtered per point in parallel; the same lists.
+    /// [`Nodes::within`] for many points at once: each cell's neighbourhood is gathered once,
+    /// then filtered per point in parallel; the same lists.
     pub fn within_each(&self, points: &[Point3<f64>], radius_m: f64) -> Vec<Vec<usize>> {
         let mut hoods: HashMap<[i64; 3], Vec<usize>> = HashMap::default();
         for p in points {
             let c = self.cell(p);
-            hoods.entry(c).or_insert_with(|| {
-                let mut hood = Vec::new();
-                for dz in -1..=1 {
-                    for dy in -1..=1 {
-                        for dx in -1..=1 {
-                            if let Some(v) = self.cells.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                                hood.extend_from_slice(v);
-                            }
-                        }
+            hoods.entry(c).or_insert_with(|| self.hood(c));
+        }
+        points.par_iter().map(|p| self.close(p, hoods.get(&self.cell(p)).map_or(&[], |h| &h[..]), radius_m)).collect()
+    }
+
+    /// The nodes of the 27 cells around cell `c`, ascending.
+    fn hood(&self, c: [i64; 3]) -> Vec<usize> {
+        let mut hood = Vec::new();
+        for dz in -1..=1 {
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    if let Some(v) = self.cells.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
+                        hood.extend_from_slice(v);
                     }
                 }
-                hood.sort_unstable();
-                hood
-            });
+            }
         }
-        points
-            .par_iter()
-            .map(|p| {
-                let hood = hoods.get(&self.cell(p)).map_or(&[][..], |h| &h[..]);
-                hood.iter().copied().filter(|&i| (self.nodes[i].position_m - p).norm() <= radius_m).collect()
-            })
-            .collect()
+        hood.sort_unstable();
+        hood
+    }
+
+    /// The nodes of an ascending `hood` within `radius_m` of `p`, in order.
+    fn close(&self, p: &Point3<f64>, hood: &[usize], radius_m: f64) -> Vec<usize> {
+        hood.iter().copied().filter(|&i| (self.nodes[i].position_m - p).norm() <= radius_m).collect()
     }
 
     /// Adds a node at every model point with no node within `spacing_m` (the point's normal
@@ -99,10 +89,9 @@ impl Nodes {
         // are found in parallel, and the raster-order pass visits the others only.
         let positions: Vec<Point3<f64>> = points.iter().map(|p| p.x_world_m).collect();
         let near = self.within_each(&positions, spacing_m);
-        let faces = |p: &ModelPoint, near: &[usize]| near.iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0);
-        let covered: Vec<bool> = points.par_iter().zip(&near).map(|(p, near)| faces(p, near)).collect();
+        let covered: Vec<bool> = points.par_iter().zip(&near).map(|(p, near)| self.faces(p, near)).collect();
         for p in points.iter().zip(&covered).filter(|(_, c)| !**c).map(|(p, _)| p) {
-            if self.covers(p, spacing_m) {
+            if self.faces(p, &self.within(&p.x_world_m, spacing_m)) {
                 continue;
             }
             if self.nodes.len() >= max_nodes {
@@ -117,9 +106,9 @@ impl Nodes {
         (added, refused)
     }
 
-    /// Whether a node within `spacing_m` of the point faces its way.
-    fn covers(&self, p: &ModelPoint, spacing_m: f64) -> bool {
-        self.within(&p.x_world_m, spacing_m).iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0)
+    /// Whether one of the `near` nodes faces the point's way.
+    fn faces(&self, p: &ModelPoint, near: &[usize]) -> bool {
+        near.iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0)
     }
 
     /// Re-bins every node after positions changed.

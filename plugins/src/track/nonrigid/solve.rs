@@ -208,7 +208,7 @@ impl<'a> Problem<'a> {
                 s
             })
             .collect();
-        let parts = (0..self.points.len().div_ceil(chunk_len(self.points.len()))).map(|_| pattern.accumulator()).collect();
+        let parts = self.points.chunks(chunk_len(self.points.len())).map(|_| pattern.accumulator()).collect();
         Ok(Layout { pattern, bound, reg_slots, diag, translation_slots, parts })
     }
 

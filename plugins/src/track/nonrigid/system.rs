@@ -130,7 +130,6 @@ impl Pattern {
             camera_node: if self.camera { vec![0.0; self.nodes * 6 * u] } else { Vec::new() },
             camera: [0.0; 36],
             g: vec![0.0; self.unknowns()],
-            energy: 0.0,
         }
     }
 
@@ -189,8 +188,6 @@ pub struct PointSums {
     ra: Vector3<f64>,
     /// Σ W r c.
     rc: Vector6<f64>,
-    /// Σ W r².
-    energy: f64,
     /// Residuals added.
     pub count: usize,
 }
@@ -204,7 +201,6 @@ impl PointSums {
         self.cc += q.w * q.camera * q.camera.transpose();
         self.ra += q.r * wa;
         self.rc += q.w * q.r * q.camera;
-        self.energy += q.w * q.r * q.r;
         self.count += 1;
     }
 }
@@ -245,15 +241,12 @@ pub struct Accumulator {
     camera: [f64; 36],
     /// JᵀWr.
     pub g: Vec<f64>,
-    /// Σ w r².
-    pub energy: f64,
 }
 
 impl Accumulator {
     /// Adds one model point's residuals (`sums`), bound to `nodes`, whose pair blocks are
     /// `pairs[k (k + 1) / 2 + l]` for l ≤ k in binding order.
     pub fn add_point(&mut self, nodes: &[NodeFactor], pairs: &[usize], sums: &PointSums) {
-        self.energy += sums.energy;
         match self.model {
             NodeModel::Affine => self.add_affine(nodes, pairs, sums),
             NodeModel::Twist => self.add_twist(nodes, pairs, sums),
@@ -363,7 +356,6 @@ impl Accumulator {
         self.camera_node.fill(0.0);
         self.camera = [0.0; 36];
         self.g.fill(0.0);
-        self.energy = 0.0;
     }
 }
 
