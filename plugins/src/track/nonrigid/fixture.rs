@@ -117,6 +117,12 @@ impl SolverCase {
         Ok(Self { tracker, points, live: level(0.0003), nodes })
     }
 
+    /// The same case solved with the chord method (`reuse_factor`) or Gauss-Newton exactly.
+    pub fn reuse_factor(mut self, on: bool) -> Self {
+        self.tracker.params.reuse_factor = on;
+        self
+    }
+
     /// Binds, assembles and solves once (the tracker's nodes are reset so every call does the
     /// same work); returns whether it solved.
     pub fn solve(&mut self) -> bool {

@@ -46,6 +46,7 @@
 //! fuser) before fusion, so the frame fuses into the wall as it is now. Surfels beyond
 //! `reach_m` of every solved node stay where they are.
 
+mod assemble;
 mod energy;
 #[doc(hidden)]
 pub mod fixture;
@@ -237,6 +238,7 @@ impl Nonrigid {
                 Gains::of(&outcome).count(ctx);
                 ctx.count("nonrigid_points", points as f64);
                 ctx.count("nonrigid_iterations", outcome.iterations as f64);
+                ctx.count("nonrigid_factorisations", outcome.factorisations as f64);
                 ctx.count("nonrigid_analyses", outcome.analyses as f64);
                 ctx.count("ms_nonrigid_setup", outcome.ms_setup);
                 ctx.count("ms_nonrigid_analyse", outcome.ms_analyse);

@@ -10,19 +10,21 @@
 //! with its graph neighbours' (`slide_normal_passes`), the slide prior ours; ξ the camera's
 //! departure from the rigid start). Bindings of model points to nodes are fixed for the frame,
 //! correspondences are re-projected every iteration (SurfelWarp), full steps (no line search).
+//! With `reuse_factor` the first iteration's factorised matrix serves the later ones, which form
+//! the gradient alone (the chord method, Ortega & Rheinboldt's simplified Newton), until a step
+//! fails to shrink; the data terms are summed in `assemble.rs`.
 
 use capsule_slam_framework::geometry::{exp_se3, renormalised};
 use capsule_slam_framework::{Iso3, StageError};
 use nalgebra::{Vector3, Vector6};
-use rayon::prelude::*;
 
-use crate::common::ed_graph::{Graph, GraphWeights, NodeModel};
+use crate::common::ed_graph::{Graph, NodeModel};
 use crate::track::icp_rgb::frames::Level;
 use crate::track::icp_rgb::{correlated_count, huber, residual_sigma};
 
 use super::energy::{data_camera_row, data_residual, image_gradient_cam, photo_camera_row, photo_world_gradient};
 use super::points::{ModelPoint, look};
-use super::system::{Accumulator, Factor, NodeFactor, Pattern, PointSums, Residual};
+use super::system::{Factor, Pattern, Residual};
 
 /// The weights and gates of the energy.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -66,6 +68,10 @@ pub struct Weights {
     /// Stop once no node's and not the camera's translation moves by more than this in an
     /// iteration, metres (0: never early).
     pub step_tolerance_m: f64,
+    /// Iterations after the first keep the last factorised matrix and linearise the gradient
+    /// alone (the chord method) while each step is smaller than the one before; one that is
+    /// not makes the next iteration factorise anew. false: Gauss-Newton exactly.
+    pub reuse_factor: bool,
     /// Model points every this many pixels (a depth error correlated over more pixels counts
     /// once per correlated patch, as in `icp-rgb`).
     pub point_stride_px: f64,
@@ -93,21 +99,14 @@ pub struct Problem<'a> {
 /// it is an inlier, in order.
 pub(crate) type Stats = ((usize, f64, f64), Vec<Option<f64>>);
 
-/// One chunk's part of `accumulate` besides its accumulator: the counts and sums of squares of
-/// the point-to-plane and photometric residuals, and its points' squared point-to-plane
-/// residuals.
-type ChunkSums = ([usize; 2], [f64; 2], Vec<Option<f64>>);
-
-/// The model points are summed in this many fixed chunks, in order: the same sums on any
-/// thread count.
-const CHUNKS: usize = 4;
-
 /// What a solve did.
 pub struct Outcome {
     /// The pose.
     pub t_world_cam: Iso3,
     /// Iterations run.
     pub iterations: usize,
+    /// Of those, the ones that factorised the normal matrix (the rest reused it).
+    pub factorisations: usize,
     /// Point-to-plane inliers at the last linearisation.
     pub inliers: usize,
     /// RMS point-to-plane residual there, metres.
@@ -139,20 +138,6 @@ pub struct Outcome {
     pub ms_problem: f64,
 }
 
-/// A problem's pattern and the slots of its terms.
-pub(crate) struct Layout {
-    /// The normal matrix (lower triangle).
-    pub(crate) pattern: Pattern,
-    /// Per bound model point, what its residuals need of the layout (fixed for the frame).
-    bound: Vec<BoundPoint>,
-    reg_slots: Vec<usize>,
-    diag: Vec<usize>,
-    /// Per node, the slots of its translation block's lower triangle, (a, b) for b ≤ a, row major.
-    translation_slots: Vec<[usize; 6]>,
-    /// One accumulator per chunk of model points, zeroed and refilled every iteration.
-    parts: Vec<Accumulator>,
-}
-
 /// The pattern and factorisation kept between frames.
 #[derive(Default)]
 pub struct Cache {
@@ -160,69 +145,6 @@ pub struct Cache {
 }
 
 impl<'a> Problem<'a> {
-    fn pairs(&self) -> Vec<(usize, usize)> {
-        let mut pairs: Vec<(usize, usize)> = Vec::new();
-        for (j, nb) in self.graph.neighbours.iter().enumerate() {
-            pairs.extend(nb.iter().map(|&n| (j, n)));
-        }
-        for (_, b) in &self.points {
-            for (k, &(i, _)) in b.iter().enumerate() {
-                pairs.extend(b[..k].iter().map(|&(j, _)| (i, j)));
-            }
-        }
-        pairs
-    }
-
-    /// The graph's weights for `E_rot`, `E_reg` (no point constraints).
-    fn graph_weights(w: &Weights) -> GraphWeights {
-        GraphWeights { rot: 1.0 / (w.sigma_rot * w.sigma_rot), reg: w.w_reg, con: 0.0, length_unit_m: w.sigma_reg_m, iterations: 1 }
-    }
-
-    /// The normal-equation pattern of this problem and where every term lands in it.
-    pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
-        let model = self.graph.model;
-        let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera, model);
-        let bound: Vec<BoundPoint> = self.points.par_iter().map(|(p, b)| self.bound_point(&pattern, p, b)).collect();
-        let mut reg_slots = Vec::new();
-        self.graph.visit(&Self::graph_weights(w), |_, row| {
-            for &(a, _) in row {
-                for &(b, _) in row {
-                    if a >= b {
-                        reg_slots.push(pattern.slot(a, b).unwrap_or(usize::MAX));
-                    }
-                }
-            }
-        });
-        let diag: Vec<usize> = (0..pattern.unknowns()).map(|u| pattern.slot(u, u).unwrap_or(usize::MAX)).collect();
-        let translation_slots = (0..self.graph.deformation.nodes.len())
-            .map(|j| {
-                let base = model.unknowns() * j + model.translation();
-                let mut s = [usize::MAX; 6];
-                let mut k = 0;
-                for a in 0..3 {
-                    for b in 0..=a {
-                        s[k] = pattern.slot(base + a, base + b).unwrap_or(usize::MAX);
-                        k += 1;
-                    }
-                }
-                s
-            })
-            .collect();
-        let parts = self.points.chunks(chunk_len(self.points.len())).map(|_| pattern.accumulator()).collect();
-        Ok(Layout { pattern, bound, reg_slots, diag, translation_slots, parts })
-    }
-
-    /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
-    /// camera departure `xi`; returns `JᵀWr` and the residual statistics.
-    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout) -> (Vec<f64>, Stats) {
-        let stats = self.accumulate(level, t, w, &mut layout.parts, &layout.bound);
-        let mut g = layout.pattern.scatter(&layout.parts);
-        self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
-        self.add_priors(w, xi, &mut layout.pattern, &layout.diag, &mut g);
-        self.add_slide_prior(w, &mut layout.pattern, &layout.translation_slots, &mut g);
-        (g, stats)
-    }
-
     /// Solves from `t_start` (the rigid estimate); the graph's node transforms hold the warp.
     pub fn solve(&mut self, level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
         let nodes = self.graph.deformation.nodes.len();
@@ -240,6 +162,7 @@ impl<'a> Problem<'a> {
         let mut out = Outcome {
             t_world_cam: t,
             iterations: 0,
+            factorisations: 0,
             inliers: 0,
             icp_rms_m: f64::INFINITY,
             icp_rms_first_m: f64::INFINITY,
@@ -254,9 +177,13 @@ impl<'a> Problem<'a> {
             ms_factor: 0.0,
             ms_problem: 0.0,
         };
+        // The chord method's state: the largest translation of the last step, and whether the
+        // next iteration factorises.
+        let (mut last_step_m, mut refactor) = (f64::INFINITY, true);
         for _ in 0..w.iterations {
             let clock = std::time::Instant::now();
-            let (g, (stats, r2)) = self.linearise(level, &t, &xi, w, &mut layout);
+            let matrix = refactor || !w.reuse_factor;
+            let (g, (stats, r2)) = self.linearise(level, &t, &xi, w, &mut layout, matrix);
             (out.inliers, out.icp_rms_m, out.rgb_rms) = stats;
             if out.iterations == 0 {
                 (out.inliers_first, out.icp_rms_first_m, out.rgb_rms_first) = stats;
@@ -265,7 +192,7 @@ impl<'a> Problem<'a> {
             last_r2 = r2;
             out.ms_assemble += ms(clock);
             let clock = std::time::Instant::now();
-            let step = factor.solve(&layout.pattern, &g).map_err(solver_error)?;
+            let step = if matrix { factor.solve(&layout.pattern, &g) } else { factor.solve_kept(&g) }.map_err(solver_error)?;
             out.ms_factor += ms(clock);
             if !step.iter().all(|v| v.is_finite()) {
                 return Err(StageError::invalid_input("nonrigid: the Gauss-Newton step is not finite"));
@@ -277,60 +204,22 @@ impl<'a> Problem<'a> {
                 xi += d;
             }
             out.iterations += 1;
+            out.factorisations += usize::from(matrix);
             let norm = step.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if norm < 1e-9 || largest_translation_m(&step, nodes, self.camera, self.graph.model) < w.step_tolerance_m {
+            let step_m = largest_translation_m(&step, nodes, self.camera, self.graph.model);
+            if norm < 1e-9 || step_m < w.step_tolerance_m {
                 break;
             }
+            // A kept matrix far from the current one (robust weights, correspondences and image
+            // gradients moved since) gives steps that overshoot and swing back instead of
+            // shrinking: factorise again.
+            refactor = !matrix && step_m >= last_step_m;
+            last_step_m = step_m;
         }
         out.t_world_cam = t;
         out.icp_common_rms_m = common_rms(&first_r2, &last_r2);
         cache.kept = Some((layout.pattern, factor));
         Ok(out)
-    }
-
-    /// The data terms at pose `t` summed into `parts` (one accumulator per fixed chunk of
-    /// points, `CHUNKS`, reset first); returns the residual statistics.
-    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, parts: &mut [Accumulator], bound: &[BoundPoint]) -> Stats {
-        let chunk = chunk_len(self.points.len());
-        let sums: Vec<ChunkSums> = self
-            .points
-            .par_chunks(chunk)
-            .zip(bound.par_chunks(chunk))
-            .zip(parts.par_iter_mut())
-            .map(|((pts, bound), acc)| {
-                acc.reset();
-                let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
-                let mut icp_r2 = Vec::with_capacity(pts.len());
-                let mut factors = Vec::new();
-                for ((p, binding), b) in pts.iter().zip(bound) {
-                    let mut sums = PointSums::default();
-                    let r2 = self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q));
-                    if sums.count > 0 {
-                        self.node_factors(b, &mut factors);
-                        acc.add_point(&factors, &b.pairs, &sums);
-                    }
-                    icp_r2.push(r2[0]);
-                    for (k, v) in r2.into_iter().enumerate() {
-                        if let Some(v) = v {
-                            n[k] += 1;
-                            sse[k] += v;
-                        }
-                    }
-                }
-                (n, sse, icp_r2)
-            })
-            .collect();
-        let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
-        let mut icp_r2 = Vec::with_capacity(self.points.len());
-        for (pn, ps, r2) in &sums {
-            icp_r2.extend_from_slice(r2);
-            for k in 0..2 {
-                n[k] += pn[k];
-                sse[k] += ps[k];
-            }
-        }
-        let rms = |k: usize| if n[k] == 0 { f64::INFINITY } else { (sse[k] / n[k] as f64).sqrt() };
-        ((n[0], rms(0), rms(1)), icp_r2)
     }
 
     /// One point's residuals given to `sink` (their Jacobians for node k are
@@ -374,64 +263,8 @@ impl<'a> Problem<'a> {
         }
         [icp_r2, None]
     }
-
-    /// Adds the graph's `E_rot` and `E_reg` rows (slots in visiting order).
-    fn add_graph_rows(&self, gw: &GraphWeights, pattern: &mut Pattern, slots: &[usize], g: &mut [f64]) {
-        let vals = pattern.a.val_mut();
-        let mut next = slots.iter();
-        self.graph.visit(gw, |r, row| {
-            for &(a, ja) in row {
-                g[a] += ja * r;
-                for &(b, jb) in row {
-                    if a >= b
-                        && let Some(&s) = next.next()
-                        && s != usize::MAX
-                    {
-                        vals[s] += ja * jb;
-                    }
-                }
-            }
-        });
-    }
 }
 
-/// What a bound model point's residuals need of the layout: the block ids of its node pairs,
-/// `pairs[k (k + 1) / 2 + l]` for l ≤ k, and its nodes with their weights and offsets
-/// `(k, w_k, x − g_k)` (the nodes' positions stay put while the solve moves their transforms).
-struct BoundPoint {
-    pairs: Vec<usize>,
-    factors: Vec<(usize, f64, Vector3<f64>)>,
-}
-
-impl Problem<'_> {
-    fn bound_point(&self, pattern: &Pattern, p: &ModelPoint, binding: &[(usize, f64)]) -> BoundPoint {
-        let mut pairs = Vec::with_capacity(binding.len() * (binding.len() + 1) / 2);
-        for (k, &(i, _)) in binding.iter().enumerate() {
-            for &(j, _) in &binding[..=k] {
-                pairs.push(pattern.block(i, j).unwrap_or(0));
-            }
-        }
-        let factors = binding.iter().map(|&(k, wk)| (k, wk, p.x_world_m - self.graph.deformation.nodes[k].position_m)).collect();
-        BoundPoint { pairs, factors }
-    }
-
-    /// The bound point's node factors at the current node transforms (a twist node's offset
-    /// turns with its rotation).
-    fn node_factors(&self, b: &BoundPoint, out: &mut Vec<NodeFactor>) {
-        let nodes = &self.graph.deformation.nodes;
-        out.clear();
-        out.extend(b.factors.iter().map(|&(node, w, v)| NodeFactor {
-            node,
-            w,
-            v: match self.graph.model {
-                NodeModel::Affine => v,
-                NodeModel::Twist => nodes[node].rotation * v,
-            },
-        }));
-    }
-}
-
-/// The largest translation a Gauss-Newton step gives a node or the camera, metres.
 /// The RMS of the squared residuals `last` and `first` over the points that have both (inliers
 /// at both linearisations): (last, first), infinite when there are none.
 fn common_rms(first: &[Option<f64>], last: &[Option<f64>]) -> (f64, f64) {
@@ -447,16 +280,12 @@ fn common_rms(first: &[Option<f64>], last: &[Option<f64>]) -> (f64, f64) {
     ((sum_last / n as f64).sqrt(), (sum_first / n as f64).sqrt())
 }
 
+/// The largest translation a Gauss-Newton step gives a node or the camera, metres.
 fn largest_translation_m(step: &[f64], nodes: usize, camera: bool, model: NodeModel) -> f64 {
     let at = |i: usize| Vector3::new(step[i], step[i + 1], step[i + 2]).norm();
     let u = model.unknowns();
     let node = (0..nodes).map(|j| at(u * j + model.translation())).fold(0.0, f64::max);
     if camera { node.max(at(u * nodes)) } else { node }
-}
-
-/// Model points per chunk of `accumulate` (`CHUNKS` chunks, at least one point each).
-fn chunk_len(points: usize) -> usize {
-    points.div_ceil(CHUNKS).max(1)
 }
 
 fn ms(since: std::time::Instant) -> f64 {

@@ -8,7 +8,6 @@
 
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use nalgebra::{Matrix3, Vector3, Vector6};
-use rayon::slice::ParallelSliceMut;
 
 use crate::common::ed_graph::NodeModel;
 use crate::common::sparse_llt::{SparseLlt, SparseLltError};
@@ -39,11 +38,25 @@ impl Pattern {
     /// directly from the sorted block list (rows ascending in every column, no triplet sort),
     /// and every block entry's value slot is recorded on the way.
     pub fn new(nodes: usize, pairs: &[(usize, usize)], camera: bool, model: NodeModel) -> Self {
-        let mut blocks: Vec<(usize, usize)> = (0..nodes).map(|i| (i, i)).chain(pairs.iter().map(|&(i, j)| (i.max(j), i.min(j)))).collect();
-        // Tens of thousands of pairs (each model point's), most of them repeated: sorted in
-        // parallel (equal pairs are identical, so the order is the sequential sort's).
-        blocks.par_sort_unstable_by_key(|&(i, j)| (j, i));
-        blocks.dedup();
+        // Tens of thousands of pairs (each model point's), most of them repeated: the distinct
+        // row nodes of each column node (a stamp per row node), then each column's few sorted.
+        let mut rows_of: Vec<Vec<usize>> = (0..nodes).map(|j| vec![j]).collect();
+        let mut stamp = vec![usize::MAX; nodes];
+        let mut by_column: Vec<Vec<usize>> = vec![Vec::new(); nodes];
+        for &(a, b) in pairs {
+            by_column[a.min(b)].push(a.max(b));
+        }
+        for (j, (rows, found)) in rows_of.iter_mut().zip(&by_column).enumerate() {
+            stamp[j] = j;
+            for &i in found {
+                if stamp[i] != j {
+                    stamp[i] = j;
+                    rows.push(i);
+                }
+            }
+            rows.sort_unstable();
+        }
+        let blocks: Vec<(usize, usize)> = rows_of.iter().enumerate().flat_map(|(j, rows)| rows.iter().map(move |&i| (i, j))).collect();
         let u = model.unknowns();
         let cam0 = u * nodes;
         let n = cam0 + if camera { 6 } else { 0 };
@@ -138,6 +151,16 @@ impl Pattern {
     /// …`, the sums of merging the parts into a zeroed accumulator and scattering it, in one
     /// pass and without that accumulator.
     pub fn scatter(&mut self, parts: &[Accumulator]) -> Vec<f64> {
+        self.scatter_blocks(parts);
+        self.gradient(parts)
+    }
+
+    /// The gradient of the chunk accumulators `parts`, summed in order (as `scatter`).
+    pub fn gradient(&self, parts: &[Accumulator]) -> Vec<f64> {
+        (0..self.unknowns()).map(|u| parts.iter().fold(0.0, |acc, p| acc + p.g[u])).collect()
+    }
+
+    fn scatter_blocks(&mut self, parts: &[Accumulator]) {
         let vals = self.a.val_mut();
         vals.iter_mut().for_each(|v| *v = 0.0);
         let sum = |at: usize, of: fn(&Accumulator) -> &[f64]| parts.iter().fold(0.0, |acc, p| acc + of(p)[at]);
@@ -154,7 +177,6 @@ impl Pattern {
                 vals[self.camera_block[e]] = sum(e, |p| &p.camera);
             }
         }
-        (0..self.unknowns()).map(|u| sum(u, |p| &p.g)).collect()
     }
 }
 
@@ -350,6 +372,42 @@ impl Accumulator {
         }
     }
 
+    /// Adds one model point's residuals to the gradient `JᵀWr` alone (an iteration that keeps
+    /// the factorised matrix of an earlier one): the same sums `add_point` adds to `g`.
+    pub fn add_point_gradient(&mut self, nodes: &[NodeFactor], sums: &PointSums) {
+        match self.model {
+            NodeModel::Affine => {
+                for f in nodes {
+                    let u = [f.w * f.v.x, f.w * f.v.y, f.w * f.v.z, f.w];
+                    let g = &mut self.g[12 * f.node..12 * (f.node + 1)];
+                    for col in 0..4 {
+                        for axis in 0..3 {
+                            g[3 * col + axis] += u[col] * sums.ra[axis];
+                        }
+                    }
+                }
+            }
+            NodeModel::Twist => {
+                for f in nodes {
+                    for (g, b) in self.g[6 * f.node..6 * (f.node + 1)].iter_mut().zip(&f.twist_rows()) {
+                        *g += b[0] * sums.ra[0] + b[1] * sums.ra[1] + b[2] * sums.ra[2];
+                    }
+                }
+            }
+        }
+        if !self.camera_node.is_empty() {
+            let base = self.g.len() - 6;
+            for c in 0..6 {
+                self.g[base + c] += sums.rc[c];
+            }
+        }
+    }
+
+    /// Zeroes the gradient alone (for `add_point_gradient`).
+    pub fn reset_gradient(&mut self) {
+        self.g.fill(0.0);
+    }
+
     /// Zeroes every sum, keeping the buffers (one accumulator per chunk serves every iteration).
     pub fn reset(&mut self) {
         self.blocks.fill(0.0);
@@ -373,6 +431,12 @@ impl Factor {
     /// Solves `A δ = −g` for the pattern's current values.
     pub fn solve(&mut self, pattern: &Pattern, g: &[f64]) -> Result<Vec<f64>, SparseLltError> {
         self.llt.factorize(pattern.a.as_ref())?;
+        self.solve_kept(g)
+    }
+
+    /// Solves `Ã δ = −g` with the last factorised matrix Ã (the chord method's step: Ã from an
+    /// earlier linearisation, `g` from the current one).
+    pub fn solve_kept(&mut self, g: &[f64]) -> Result<Vec<f64>, SparseLltError> {
         let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
         self.llt.solve_in_place(&mut step)?;
         Ok(step)

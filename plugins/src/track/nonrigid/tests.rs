@@ -67,6 +67,36 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
 }
 
 #[test]
+fn the_chord_iterations_reach_the_gauss_newton_solution() {
+    // Factorising once and iterating on the gradient alone converges to the fixed point of
+    // Gauss-Newton (the gradient's zero), more slowly: run both to convergence.
+    let (pts, points, live) = moved_wall();
+    for model in [NodeModel::Affine, NodeModel::Twist] {
+        let fit = |reuse_factor: bool| {
+            let mut t = tracker(CameraMode::Joint);
+            (t.params.node_model, t.params.iterations, t.params.step_tolerance_m, t.params.reuse_factor) = (model, 30, 1e-9, reuse_factor);
+            (t.params.min_rms_gain, t.params.min_evidence) = (0.0, 0.0);
+            t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+            let Fit::Solved { warp, t_world_cam, outcome, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else {
+                panic!("{model:?}, reuse {reuse_factor}: fell back")
+            };
+            let moved: Vec<Point3<f64>> = pts.iter().map(|(p, _)| warp.warp_point(&p.x_world_m, 0)).collect();
+            (moved, t_world_cam, warp_error(&warp, &pts), (outcome.factorisations, outcome.iterations))
+        };
+        let (exact, t_exact, err_exact, (factorised, iterations)) = fit(false);
+        assert_eq!(factorised, iterations, "{model:?}: Gauss-Newton factorises on every iteration");
+        let (chord, t_chord, err_chord, (factorised, iterations)) = fit(true);
+        // From this far start the first kept matrix swings the steps back and forth: the guard
+        // factorises again, and then the kept matrix serves the rest.
+        assert!(factorised >= 2 && 2 * factorised < iterations, "{model:?}: the chord method factorised {factorised} times in {iterations} iterations");
+        let apart = exact.iter().zip(&chord).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        assert!(apart < 2e-6, "{model:?}: the chord solution is {:.2} µm from Gauss-Newton's", apart * 1e6);
+        assert!((t_exact.translation.vector - t_chord.translation.vector).norm() < 1e-6, "{model:?}: the cameras differ");
+        assert!(err_chord < 0.1e-3 && err_exact < 0.1e-3, "{model:?}: warp errors {err_exact} / {err_chord} m");
+    }
+}
+
+#[test]
 fn a_kept_warp_leads_the_wall_by_its_share_of_the_solved_motion() {
     let (_, points, live) = moved_wall();
     // Frame 1: the wall moved by the test's field; frame 2 by twice it (steady motion).
@@ -207,8 +237,12 @@ fn assembled_normal_equations_equal_the_dense_products(model: NodeModel) {
     let t_wc = capsule_slam_framework::geometry::exp_se3(&nalgebra::Vector6::new(1e-4, -2e-4, 5e-5, 1e-3, 0.0, -2e-3));
     let xi = nalgebra::Vector6::new(1e-4, 0.0, -1e-4, 1e-3, 2e-3, 0.0);
     let mut layout = problem.layout(&w).unwrap();
-    let (g, _) = problem.linearise(&live, &t_wc, &xi, &w, &mut layout);
+    let (g, _) = problem.linearise(&live, &t_wc, &xi, &w, &mut layout, true);
     let a = dense(&layout.pattern);
+    // The chord method's iterations form the same gradient without the matrix.
+    let mut gradient_layout = problem.layout(&w).unwrap();
+    let (g_alone, _) = problem.linearise(&live, &t_wc, &xi, &w, &mut gradient_layout, false);
+    assert_eq!(g_alone, g, "{model:?}: the gradient alone differs from the full linearisation's");
     // The same terms as dense rows: data rows recorded from the same residual code, the graph's
     // rows from its visitor, the priors written out here.
     let n = a.nrows();
@@ -308,7 +342,7 @@ fn eigenvalues(priors: bool, model: NodeModel) -> Vec<f64> {
     let w = t.params.weights();
     let (problem, _, _) = t.problem(&points).unwrap();
     let mut layout = problem.layout(&w).unwrap();
-    problem.linearise(&live, &Iso3::identity(), &nalgebra::Vector6::zeros(), &w, &mut layout);
+    problem.linearise(&live, &Iso3::identity(), &nalgebra::Vector6::zeros(), &w, &mut layout, true);
     let mut e: Vec<f64> = dense(&layout.pattern).symmetric_eigenvalues().iter().copied().collect();
     e.sort_by(f64::total_cmp);
     e
