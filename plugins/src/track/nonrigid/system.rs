@@ -41,19 +41,12 @@ impl Pattern {
         // Tens of thousands of pairs (each model point's), most of them repeated: the distinct
         // row nodes of each column node (a stamp per row node), then each column's few sorted.
         let mut rows_of: Vec<Vec<usize>> = (0..nodes).map(|j| vec![j]).collect();
-        let mut stamp = vec![usize::MAX; nodes];
-        let mut by_column: Vec<Vec<usize>> = vec![Vec::new(); nodes];
         for &(a, b) in pairs {
-            by_column[a.min(b)].push(a.max(b));
+            rows_of[a.min(b)].push(a.max(b));
         }
-        for (j, (rows, found)) in rows_of.iter_mut().zip(&by_column).enumerate() {
-            stamp[j] = j;
-            for &i in found {
-                if stamp[i] != j {
-                    stamp[i] = j;
-                    rows.push(i);
-                }
-            }
+        let mut stamp = vec![usize::MAX; nodes];
+        for (j, rows) in rows_of.iter_mut().enumerate() {
+            rows.retain(|&i| std::mem::replace(&mut stamp[i], j) != j);
             rows.sort_unstable();
         }
         let blocks: Vec<(usize, usize)> = rows_of.iter().enumerate().flat_map(|(j, rows)| rows.iter().map(move |&i| (i, j))).collect();
@@ -269,14 +262,13 @@ impl Accumulator {
     /// Adds one model point's residuals (`sums`), bound to `nodes`, whose pair blocks are
     /// `pairs[k (k + 1) / 2 + l]` for l ≤ k in binding order.
     pub fn add_point(&mut self, nodes: &[NodeFactor], pairs: &[usize], sums: &PointSums) {
+        self.add_point_gradient(nodes, sums);
         match self.model {
             NodeModel::Affine => self.add_affine(nodes, pairs, sums),
             NodeModel::Twist => self.add_twist(nodes, pairs, sums),
         }
         if !self.camera_node.is_empty() {
-            let base = self.g.len() - 6;
             for c in 0..6 {
-                self.g[base + c] += sums.rc[c];
                 for d in 0..=c {
                     self.camera[6 * c + d] += sums.cc[(c, d)];
                 }
@@ -293,12 +285,6 @@ impl Accumulator {
         let factor = |f: &NodeFactor| [f.w * f.v.x, f.w * f.v.y, f.w * f.v.z, f.w];
         for (k, fk) in nodes.iter().enumerate() {
             let (i, uk) = (fk.node, factor(fk));
-            let g = &mut self.g[U * i..U * (i + 1)];
-            for col in 0..4 {
-                for axis in 0..3 {
-                    g[3 * col + axis] += uk[col] * sums.ra[axis];
-                }
-            }
             for (l, fl) in nodes.iter().enumerate().take(k + 1) {
                 let (j, ul) = (fl.node, factor(fl));
                 let block = &mut self.blocks[U * U * pairs[k * (k + 1) / 2 + l]..][..U * U];
@@ -348,9 +334,6 @@ impl Accumulator {
         }
         for (k, fk) in nodes.iter().enumerate() {
             let i = fk.node;
-            for (g, b) in self.g[U * i..U * (i + 1)].iter_mut().zip(&rows[k]) {
-                *g += b[0] * sums.ra[0] + b[1] * sums.ra[1] + b[2] * sums.ra[2];
-            }
             for (l, fl) in nodes.iter().enumerate().take(k + 1) {
                 let block = &mut self.blocks[U * U * pairs[k * (k + 1) / 2 + l]..][..U * U];
                 // Rows belong to the larger node index of the block.
@@ -372,8 +355,8 @@ impl Accumulator {
         }
     }
 
-    /// Adds one model point's residuals to the gradient `JᵀWr` alone (an iteration that keeps
-    /// the factorised matrix of an earlier one): the same sums `add_point` adds to `g`.
+    /// Adds one model point's residuals to the gradient `JᵀWr` alone (all an iteration that
+    /// keeps an earlier factorised matrix needs; `add_point` adds the blocks besides).
     pub fn add_point_gradient(&mut self, nodes: &[NodeFactor], sums: &PointSums) {
         match self.model {
             NodeModel::Affine => {
