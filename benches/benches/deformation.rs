@@ -1,7 +1,9 @@
 //! The deformation graph (issue 7): the Gauss-Newton solve against the node count (64 to 4096
 //! nodes on a curved sheet with one surface constraint and one pin per node, as a closure
 //! gives), one factorisation per iteration; and warping a map of 100 000 surfels by a solved
-//! 1024-node graph whose older half is frozen (the fuser's share of a closure).
+//! 1024-node graph whose older half is frozen (the fuser's share of a closure), and by a
+//! tracker's warp of the surface in view (nodes with a reach: the fuser's share of a frame of
+//! `nonrigid`).
 
 use capsule_slam_framework::Surfel;
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, SurfelTime, Window};
@@ -55,19 +57,7 @@ fn warp_map(c: &mut Criterion) {
     let map: Vec<Surfel> = (0..100_000u32)
         .map(|i| {
             let (x, y) = ((i % 316) as f32 / 316.0 * 0.04, (i / 316) as f32 / 316.0 * 0.04);
-            let t = (x / 0.04 * side as f32) as u32;
-            Surfel {
-                position_m: nalgebra::Point3::new(x, y, 0.03),
-                normal: Vector3::<f32>::z(),
-                colour: [0; 3],
-                confidence: 10.0,
-                radius_m: 2e-4,
-                t0: t,
-                t,
-                albedo: 0.0,
-                sigma_m: 0.0,
-                warp_m: Vector3::zeros(),
-            }
+            sheet_surfel(x, y, (x / 0.04 * side as f32) as u32)
         })
         .collect();
     c.bench_function("deformation-warp-map/100000", |b| {
@@ -84,5 +74,48 @@ fn warp_map(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, solve, warp_map);
+/// A tracker's warp (`nonrigid`): 81 nodes 8 mm apart on a 64 mm square of a 100 mm map,
+/// each moved up to 0.5 mm, reach 16 mm, every node a candidate of every surfel; 100 000
+/// surfels, most beyond the reach and left alone.
+fn warp_map_reach(c: &mut Criterion) {
+    let nodes: Vec<DeformationNode> = (0..81)
+        .map(|i| {
+            let mut n = DeformationNode::identity(Point3::new(0.018 + (i % 9) as f64 * 0.008, 0.018 + (i / 9) as f64 * 0.008, 0.03), 0);
+            n.translation_m = Vector3::new(0.0, 0.0, 0.0005 * ((i % 9) as f64 * 0.7).sin());
+            n
+        })
+        .collect();
+    let d = Deformation::new(nodes, 4, Window::All).within(0.016).timed_by(SurfelTime::LastSeen);
+    let map: Vec<Surfel> = (0..100_000u32).map(|i| sheet_surfel((i % 316) as f32 / 316.0 * 0.1, (i / 316) as f32 / 316.0 * 0.1, 0)).collect();
+    c.bench_function("deformation-warp-map-reach/100000", |b| {
+        b.iter_batched(
+            || map.clone(),
+            |mut m| {
+                use rayon::prelude::*;
+                let w = d.warper();
+                m.par_iter_mut().for_each(|s| w.warp_surfel_as_motion(s));
+                m
+            },
+            criterion::BatchSize::LargeInput,
+        )
+    });
+}
+
+/// A surfel at (x, y) on the plane z = 30 mm, facing +z, last seen at frame `t`.
+fn sheet_surfel(x: f32, y: f32, t: u32) -> Surfel {
+    Surfel {
+        position_m: nalgebra::Point3::new(x, y, 0.03),
+        normal: Vector3::<f32>::z(),
+        colour: [0; 3],
+        confidence: 10.0,
+        radius_m: 2e-4,
+        t0: t,
+        t,
+        albedo: 0.0,
+        sigma_m: 0.0,
+        warp_m: Vector3::zeros(),
+    }
+}
+
+criterion_group!(benches, solve, warp_map, warp_map_reach);
 criterion_main!(benches);

@@ -68,17 +68,24 @@ pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sig
     out
 }
 
-/// Back-projects every valid pixel: `v = K⁻¹ [u v 1]ᵀ d` (the paper's p(u, D)).
+/// Back-projects every valid pixel: `v = K⁻¹ [u v 1]ᵀ d` (the paper's p(u, D)), as
+/// [`PinholeCamera::unproject`] does, with the ray's `(u − cx) / fx` and `(v − cy) / fy` taken
+/// from a table per column and per row (the same values, not recomputed per pixel).
 pub fn vertex_map(depth: &DepthMap, cam: &PinholeCamera) -> VertexMap {
     let (w, h) = depth.size();
-    VertexMap::from_fn_par(w, h, |x, y| {
-        let d = depth.at(x, y);
-        if d <= 0.0 {
-            return [0.0; 3];
+    let ray_x: Vec<f64> = (0..w).map(|x| (x as f64 - cam.cx) / cam.fx).collect();
+    let mut out = VertexMap::new(w, h);
+    out.data_mut().par_chunks_mut((3 * w).max(1)).zip(depth.data().par_chunks(w.max(1))).enumerate().for_each(|(y, (row, depths))| {
+        let ray_y = (y as f64 - cam.cy) / cam.fy;
+        for ((v, &d), &rx) in row.chunks_exact_mut(3).zip(depths).zip(&ray_x) {
+            if d <= 0.0 {
+                continue;
+            }
+            let d = f64::from(d);
+            v.copy_from_slice(&[(rx * d) as f32, (ray_y * d) as f32, d as f32]);
         }
-        let p = cam.unproject(x as f64, y as f64, f64::from(d));
-        [p.x as f32, p.y as f32, p.z as f32]
-    })
+    });
+    out
 }
 
 /// The vertex at pixel (x, y), if valid.
@@ -92,29 +99,37 @@ pub fn vertex(v: &VertexMap, x: usize, y: usize) -> Option<Vector3<f32>> {
 /// than `max_jump_m` apart in depth (a depth edge).
 pub fn normal_map(v: &VertexMap, step: usize, max_jump_m: f32) -> NormalMap {
     let (w, h) = v.size();
-    NormalMap::from_fn_par(w, h, |x, y| {
-        if x < step || y < step || x + step >= w || y + step >= h {
-            return [0.0; 3];
+    let mut out = NormalMap::new(w, h);
+    if step == 0 || w <= 2 * step || h <= 2 * step {
+        return out;
+    }
+    let rows = |y: usize| &v.data()[3 * w * y..3 * w * (y + 1)];
+    let at = |row: &[f32], x: usize| {
+        let p = &row[3 * x..3 * x + 3];
+        (p[2] > 0.0).then(|| Vector3::new(p[0], p[1], p[2]))
+    };
+    out.data_mut().par_chunks_mut(3 * w).enumerate().skip(step).take(h - 2 * step).for_each(|(y, out)| {
+        let (here, up, down) = (rows(y), rows(y - step), rows(y + step));
+        for x in step..w - step {
+            let (Some(c), Some(l), Some(r), Some(u), Some(d)) = (at(here, x), at(here, x - step), at(here, x + step), at(up, x), at(down, x)) else {
+                continue;
+            };
+            if [l, r, u, d].iter().any(|q| (q.z - c.z).abs() > max_jump_m) {
+                continue;
+            }
+            let n = (r - l).cross(&(d - u));
+            let len = n.norm();
+            if len <= 0.0 {
+                continue;
+            }
+            let mut n = -n / len;
+            if n.dot(&c) > 0.0 {
+                n = -n;
+            }
+            out[3 * x..3 * x + 3].copy_from_slice(&[n.x, n.y, n.z]);
         }
-        let (Some(c), Some(l), Some(r), Some(u), Some(d)) =
-            (vertex(v, x, y), vertex(v, x - step, y), vertex(v, x + step, y), vertex(v, x, y - step), vertex(v, x, y + step))
-        else {
-            return [0.0; 3];
-        };
-        if [l, r, u, d].iter().any(|q| (q.z - c.z).abs() > max_jump_m) {
-            return [0.0; 3];
-        }
-        let n = (r - l).cross(&(d - u));
-        let len = n.norm();
-        if len <= 0.0 {
-            return [0.0; 3];
-        }
-        let mut n = -n / len;
-        if n.dot(&c) > 0.0 {
-            n = -n;
-        }
-        [n.x, n.y, n.z]
-    })
+    });
+    out
 }
 
 /// The normal at pixel (x, y), if valid.
@@ -192,6 +207,70 @@ mod tests {
         let got = normal(&n, 30, 20).unwrap().cast::<f64>();
         assert!((got - n_true).norm() < 1e-4, "{got}");
         assert!(normal(&n, 0, 0).is_none());
+    }
+
+    /// A depth map with a slope, a depth edge, holes and a NaN: every branch of the maps.
+    fn rough_depth(w: usize, h: usize) -> DepthMap {
+        DepthMap::from_fn(w, h, |x, y| {
+            let d = 0.03 + 0.0001 * x as f32 + 0.00007 * y as f32 + if x > w / 2 { 0.01 } else { 0.0 };
+            [match (x * 7 + y * 13) % 23 {
+                0 => 0.0,
+                1 => f32::NAN,
+                _ => d,
+            }]
+        })
+    }
+
+    #[test]
+    fn the_vertex_map_is_the_unprojection_of_every_pixel_with_depth() {
+        let c = cam();
+        let depth = rough_depth(64, 48);
+        let v = vertex_map(&depth, &c);
+        for y in 0..48 {
+            for x in 0..64 {
+                let d = depth.at(x, y);
+                let want = if d <= 0.0 {
+                    [0.0; 3]
+                } else {
+                    let p = c.unproject(x as f64, y as f64, f64::from(d));
+                    [p.x as f32, p.y as f32, p.z as f32]
+                };
+                assert_eq!(v.pixel(x, y).map(f32::to_bits), want.map(f32::to_bits), "pixel ({x}, {y})");
+            }
+        }
+    }
+
+    #[test]
+    fn the_normal_map_is_the_cross_product_of_the_central_differences() {
+        let c = cam();
+        let v = vertex_map(&rough_depth(64, 48), &c);
+        for (step, jump) in [(1, 0.002), (2, 0.02)] {
+            let n = normal_map(&v, step, jump);
+            let mut seen = 0;
+            for y in 0..48 {
+                for x in 0..64 {
+                    // The definition, pixel by pixel.
+                    let want = (|| {
+                        if x < step || y < step || x + step >= 64 || y + step >= 48 {
+                            return [0.0; 3];
+                        }
+                        let q = |x: usize, y: usize| vertex(&v, x, y);
+                        let (Some(c), Some(l), Some(r), Some(u), Some(d)) = (q(x, y), q(x - step, y), q(x + step, y), q(x, y - step), q(x, y + step)) else {
+                            return [0.0; 3];
+                        };
+                        if [l, r, u, d].iter().any(|p| (p.z - c.z).abs() > jump) {
+                            return [0.0; 3];
+                        }
+                        let m = -(r - l).cross(&(d - u)).normalize();
+                        let m = if m.dot(&c) > 0.0 { -m } else { m };
+                        [m.x, m.y, m.z]
+                    })();
+                    seen += usize::from(want != [0.0; 3]);
+                    assert_eq!(n.pixel(x, y).map(f32::to_bits), want.map(f32::to_bits), "pixel ({x}, {y}), step {step}");
+                }
+            }
+            assert!(seen > 1000, "{seen} normals");
+        }
     }
 
     #[test]

@@ -153,9 +153,9 @@ impl Disc {
     }
 
     /// Depth of the intersection of pixel (x, y)'s ray with the disc, if it hits within range.
-    fn hit(&self, x: i64, y: i64, cam: &PinholeCamera, depths: &SplatDepths) -> Option<f32> {
+    fn hit(&self, x: i64, y: i64, rays: &Rays, depths: &SplatDepths) -> Option<f32> {
         // Ray through the pixel centre, z = 1; plane n·(X − p) = 0.
-        let d = Vector3::new((x as f32 - cam.cx as f32) / cam.fx as f32, (y as f32 - cam.cy as f32) / cam.fy as f32, 1.0);
+        let d = Vector3::new(rays.x[x as usize], rays.y[y as usize], 1.0);
         let nd = self.n.dot(&d);
         if nd.abs() < 1e-6 {
             return None;
@@ -165,14 +165,29 @@ impl Disc {
     }
 
     /// Calls `f(pixel, depth)` for every pixel the disc covers.
-    fn for_each_hit(&self, cam: &PinholeCamera, depths: &SplatDepths, mut f: impl FnMut(usize, f32)) {
+    fn for_each_hit(&self, rays: &Rays, depths: &SplatDepths, mut f: impl FnMut(usize, f32)) {
+        let w = rays.x.len();
         for y in self.y.0..=self.y.1 {
             for x in self.x.0..=self.x.1 {
-                if let Some(t) = self.hit(x, y, cam, depths) {
-                    f(y as usize * cam.width + x as usize, t);
+                if let Some(t) = self.hit(x, y, rays, depths) {
+                    f(y as usize * w + x as usize, t);
                 }
             }
         }
+    }
+}
+
+/// The rays through the pixel centres at z = 1, `(x − cx) / fx` per column and `(y − cy) / fy`
+/// per row (f32), computed once per render instead of per pixel and disc.
+struct Rays {
+    x: Vec<f32>,
+    y: Vec<f32>,
+}
+
+impl Rays {
+    fn new(cam: &PinholeCamera) -> Self {
+        let ray = |i: usize, c: f64, f: f64| (i as f32 - c as f32) / f as f32;
+        Self { x: (0..cam.width).map(|x| ray(x, cam.cx, cam.fx)).collect(), y: (0..cam.height).map(|y| ray(y, cam.cy, cam.fy)).collect() }
     }
 }
 
@@ -227,10 +242,11 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
 /// the discs are made once, in surfel order, and the passes run over those in view.
 fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + Sync, cam: &PinholeCamera, depths: &SplatDepths) -> Vec<u64> {
     let n = cam.width * cam.height;
+    let rays = Rays::new(cam);
     let discs: Vec<(u32, Disc)> = surfels.par_iter().enumerate().filter_map(|(i, s)| disc(s).map(|d| (i as u32, d))).collect();
     let front: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(u32::MAX)).collect();
     discs.par_iter().for_each(|(_, d)| {
-        d.for_each_hit(cam, depths, |k, t| {
+        d.for_each_hit(&rays, depths, |k, t| {
             if t.to_bits() < front[k].load(Ordering::Relaxed) {
                 front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
             }
@@ -241,7 +257,7 @@ fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + S
     let best: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
     discs.par_iter().enumerate().for_each(|(j, (i, d))| {
         let key = (u64::from(conf_key(capped(surfels[*i as usize].confidence, depths))) << 32) | u64::from(!(j as u32));
-        d.for_each_hit(cam, depths, |k, t| {
+        d.for_each_hit(&rays, depths, |k, t| {
             if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
                 best[k].fetch_max(key, Ordering::Relaxed);
             }
@@ -256,7 +272,7 @@ fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + S
                 return EMPTY;
             }
             let (i, d) = &discs[!(key as u32) as usize];
-            d.hit((k % w) as i64, (k / w) as i64, cam, depths).map_or(EMPTY, |t| pack(t, *i as usize))
+            d.hit((k % w) as i64, (k / w) as i64, &rays, depths).map_or(EMPTY, |t| pack(t, *i as usize))
         })
         .collect()
 }
@@ -296,9 +312,10 @@ mod tests {
             };
             let Some(d) = Disc::new(&surfel, &nalgebra::Isometry3::identity(), &cam, &depths) else { return Ok(()) };
             let (u0, v0) = ((160.0 * x / z + 159.5).round() as i64, (160.0 * y / z + 159.5).round() as i64);
+            let rays = Rays::new(&cam);
             for py in (v0 - 12).max(0)..=(v0 + 12).min(319) {
                 for px in (u0 - 12).max(0)..=(u0 + 12).min(319) {
-                    if d.hit(px, py, &cam, &depths).is_some() {
+                    if d.hit(px, py, &rays, &depths).is_some() {
                         prop_assert!(d.x.0 <= px && px <= d.x.1 && d.y.0 <= py && py <= d.y.1, "pixel ({px}, {py}) outside {:?} {:?}", d.x, d.y);
                     }
                 }

@@ -38,14 +38,33 @@ pub struct Level {
 /// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
 pub type DepthPrep = GeometryParams;
 
-/// Central differences where both neighbours have depth and an intensity (0 marks none).
+/// Central differences where both neighbours have depth and an intensity (0 marks none); both
+/// images in one pass over the rows.
 fn gradients(g: &GrayF32, valid: &DepthMap) -> (GrayF32, GrayF32) {
     let (w, h) = g.size();
-    let ok = |x: usize, y: usize| valid.at(x, y) > 0.0 && g.at(x, y) > 0.0;
-    let gx =
-        GrayF32::from_fn_par(w, h, |x, y| [if x > 0 && x + 1 < w && ok(x - 1, y) && ok(x + 1, y) { 0.5 * (g.at(x + 1, y) - g.at(x - 1, y)) } else { 0.0 }]);
-    let gy =
-        GrayF32::from_fn_par(w, h, |x, y| [if y > 0 && y + 1 < h && ok(x, y - 1) && ok(x, y + 1) { 0.5 * (g.at(x, y + 1) - g.at(x, y - 1)) } else { 0.0 }]);
+    let (mut gx, mut gy) = (GrayF32::new(w, h), GrayF32::new(w, h));
+    if w == 0 || h == 0 {
+        return (gx, gy);
+    }
+    let (gd, vd) = (g.data(), valid.data());
+    let row = |y: usize| (&gd[y * w..(y + 1) * w], &vd[y * w..(y + 1) * w]);
+    let ok = |(g, v): (&[f32], &[f32]), x: usize| v[x] > 0.0 && g[x] > 0.0;
+    gx.data_mut().par_chunks_mut(w).zip(gy.data_mut().par_chunks_mut(w)).enumerate().for_each(|(y, (out_x, out_y))| {
+        let here = row(y);
+        for (x, out) in out_x.iter_mut().enumerate().take(w - 1).skip(1) {
+            if ok(here, x - 1) && ok(here, x + 1) {
+                *out = 0.5 * (here.0[x + 1] - here.0[x - 1]);
+            }
+        }
+        if y > 0 && y + 1 < h {
+            let (up, down) = (row(y - 1), row(y + 1));
+            for (x, out) in out_y.iter_mut().enumerate() {
+                if ok(up, x) && ok(down, x) {
+                    *out = 0.5 * (down.0[x] - up.0[x]);
+                }
+            }
+        }
+    });
     (gx, gy)
 }
 
@@ -122,10 +141,20 @@ pub fn live(
 /// 2^l-th pixel's σ: the mean of a 2 × 2 block of a spatially correlated error (a stereo or
 /// smooth error) is hardly better than one pixel.
 fn set_sigma(levels: &mut [Level], sigma: &DepthMap, correlation_px: f64) {
+    let (sw, sh) = sigma.size();
     for (l, level) in levels.iter_mut().enumerate() {
         let (w, h) = level.depth.size();
         let step = 1usize << l;
-        level.sigma = Some(DepthMap::from_fn_par(w, h, |x, y| [sigma.at((x * step).min(sigma.width() - 1), (y * step).min(sigma.height() - 1))]));
+        let mut out = DepthMap::new(w, h);
+        if sw > 0 && sh > 0 && w > 0 {
+            out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                let src = &sigma.data()[(y * step).min(sh - 1) * sw..][..sw];
+                for (x, v) in row.iter_mut().enumerate() {
+                    *v = src[(x * step).min(sw - 1)];
+                }
+            });
+        }
+        level.sigma = Some(out);
         level.sigma_correlation_px = correlation_px / step as f64;
     }
 }
@@ -171,4 +200,49 @@ pub fn reference(model: Option<&ModelView>, previous: Option<&Level>, cam: &Pinh
         set_sigma(&mut out, &sigma, 0.0);
     }
     Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gradients_are_central_differences_where_both_neighbours_are_valid() {
+        let (w, h) = (37, 23);
+        let g = GrayF32::from_fn(w, h, |x, y| [if (x + 3 * y) % 11 == 0 { 0.0 } else { 0.2 + 0.01 * x as f32 + 0.003 * (y * y) as f32 }]);
+        let valid = DepthMap::from_fn(w, h, |x, y| [if (2 * x + y) % 13 == 0 { 0.0 } else { 0.04 }]);
+        let (gx, gy) = gradients(&g, &valid);
+        let ok = |x: usize, y: usize| valid.at(x, y) > 0.0 && g.at(x, y) > 0.0;
+        let mut seen = 0;
+        for y in 0..h {
+            for x in 0..w {
+                let want_x = if x > 0 && x + 1 < w && ok(x - 1, y) && ok(x + 1, y) { 0.5 * (g.at(x + 1, y) - g.at(x - 1, y)) } else { 0.0 };
+                let want_y = if y > 0 && y + 1 < h && ok(x, y - 1) && ok(x, y + 1) { 0.5 * (g.at(x, y + 1) - g.at(x, y - 1)) } else { 0.0 };
+                assert_eq!((gx.at(x, y).to_bits(), gy.at(x, y).to_bits()), (want_x.to_bits(), want_y.to_bits()), "pixel ({x}, {y})");
+                seen += usize::from(want_x != 0.0 && want_y != 0.0);
+            }
+        }
+        assert!(seen > 200, "{seen} pixels with both gradients");
+    }
+
+    #[test]
+    fn every_level_samples_the_sigma_of_its_pixels_corner() {
+        let cam = PinholeCamera::new(21, 14, 20.0, 20.0, 10.0, 7.0);
+        let depth = DepthMap::from_fn(21, 14, |x, _| [0.03 + 0.001 * x as f32]);
+        let gray = GrayF32::filled(21, 14, 0.5);
+        let prep = DepthPrep { min_m: 0.001, max_m: 1.0, radius_px: 1, sigma_px: 2.0, sigma_m: 0.001, edge_jump_m: 0.01 };
+        let mut levels = pyramid(depth, gray, (None, None), &cam, 3, &prep);
+        let sigma = DepthMap::from_fn(21, 14, |x, y| [1e-4 * (x + 100 * y) as f32]);
+        set_sigma(&mut levels, &sigma, 6.0);
+        for (l, level) in levels.iter().enumerate() {
+            let s = level.sigma.as_ref().expect("σ set");
+            assert_eq!(s.size(), level.depth.size());
+            for y in 0..s.height() {
+                for x in 0..s.width() {
+                    assert_eq!(s.at(x, y), sigma.at(x << l, y << l), "level {l} pixel ({x}, {y})");
+                }
+            }
+            assert_eq!(level.sigma_correlation_px, 6.0 / f64::from(1u32 << l));
+        }
+    }
 }
