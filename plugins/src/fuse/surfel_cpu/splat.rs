@@ -61,15 +61,15 @@ impl IndexMap {
         let mut index = vec![u32::MAX; w * h];
         let mut p_cam = vec![Point3::origin(); w * h];
         let mut n_cam = vec![Vector3::zeros(); w * h];
-        for (k, z) in zbuf.iter().enumerate() {
+        (index.par_iter_mut(), p_cam.par_iter_mut(), n_cam.par_iter_mut(), zbuf.par_iter()).into_par_iter().for_each(|(index, p, n, z)| {
             let v = z.load(Ordering::Relaxed);
             if v != EMPTY {
                 let (_, i) = unpack(v);
-                index[k] = i as u32;
-                p_cam[k] = t_cam_world * surfels[i].position_m;
-                n_cam[k] = t_cam_world.rotation * surfels[i].normal;
+                *index = i as u32;
+                *p = t_cam_world * surfels[i].position_m;
+                *n = t_cam_world.rotation * surfels[i].normal;
             }
-        }
+        });
         Self { width: w, index, p_cam, n_cam }
     }
 }
@@ -213,25 +213,32 @@ pub fn predict(surfels: &[Surfel], include: impl Fn(&Surfel) -> bool + Sync, cam
     let t_cam_world = t_world_cam.inverse().cast::<f32>();
     let disc = |s: &Surfel| if include(s) { Disc::new(s, &t_cam_world, cam, depths) } else { None };
     let winners = most_confident(surfels, disc, cam, depths);
-    // The winner's normal and colour beside its intersection depth.
+    // The winner's normal and colour beside its intersection depth, row by row in parallel.
     let mut view = ModelView::empty(w, h, *t_world_cam);
-    for (k, &v) in winners.iter().enumerate() {
-        if v == EMPTY {
-            continue;
-        }
-        let (depth, i) = unpack(v);
-        let s = &surfels[i];
-        let (x, y) = (k % w, k / w);
-        let n = t_cam_world.rotation * s.normal;
-        *view.depth_m.at_mut(x, y) = depth;
-        view.normals_cam.set_pixel(x, y, [n.x, n.y, n.z]);
-        view.colour.set_pixel(x, y, s.colour);
-        *view.confidence.at_mut(x, y) = s.confidence;
-        *view.t0.at_mut(x, y) = s.t0;
-        *view.t.at_mut(x, y) = s.t;
-        *view.albedo.at_mut(x, y) = s.albedo;
-        *view.sigma_m.at_mut(x, y) = predicted_sigma(s.sigma_m, s.confidence);
+    if w == 0 {
+        return view;
     }
+    let v = &mut view;
+    let rows = (v.depth_m.data_mut().par_chunks_mut(w), v.normals_cam.data_mut().par_chunks_mut(3 * w), v.colour.data_mut().par_chunks_mut(3 * w));
+    let more = (v.confidence.data_mut().par_chunks_mut(w), v.t0.data_mut().par_chunks_mut(w), v.t.data_mut().par_chunks_mut(w));
+    let last = (v.albedo.data_mut().par_chunks_mut(w), v.sigma_m.data_mut().par_chunks_mut(w), winners.par_chunks(w));
+    (rows.into_par_iter(), more.into_par_iter(), last.into_par_iter()).into_par_iter().for_each(
+        |((depth, normal, colour), (confidence, t0, t), (albedo, sigma, winners))| {
+            for (x, &v) in winners.iter().enumerate() {
+                if v == EMPTY {
+                    continue;
+                }
+                let (d, i) = unpack(v);
+                let s = &surfels[i];
+                let n = t_cam_world.rotation * s.normal;
+                depth[x] = d;
+                normal[3 * x..3 * x + 3].copy_from_slice(&[n.x, n.y, n.z]);
+                colour[3 * x..3 * x + 3].copy_from_slice(&s.colour);
+                (confidence[x], t0[x], t[x], albedo[x]) = (s.confidence, s.t0, s.t, s.albedo);
+                sigma[x] = predicted_sigma(s.sigma_m, s.confidence);
+            }
+        },
+    );
     view
 }
 
