@@ -60,13 +60,23 @@ fn warp_map(c: &mut Criterion) {
             sheet_surfel(x, y, (x / 0.04 * side as f32) as u32)
         })
         .collect();
-    c.bench_function("deformation-warp-map/100000", |b| {
+    bench_warp(c, "deformation-warp-map/100000", &d, &map, false);
+}
+
+/// Times warping a copy of `map` by `d` (as the fuser does: in parallel, through a
+/// [`Deformation::warper`]; as a tracker's motion when `motion`).
+fn bench_warp(c: &mut Criterion, id: &str, d: &Deformation, map: &[Surfel], motion: bool) {
+    use rayon::prelude::*;
+    c.bench_function(id, |b| {
         b.iter_batched(
-            || map.clone(),
+            || map.to_vec(),
             |mut m| {
-                use rayon::prelude::*;
                 let w = d.warper();
-                m.par_iter_mut().for_each(|s| w.warp_surfel(s));
+                if motion {
+                    m.par_iter_mut().for_each(|s| w.warp_surfel_as_motion(s));
+                } else {
+                    m.par_iter_mut().for_each(|s| w.warp_surfel(s));
+                }
                 m
             },
             criterion::BatchSize::LargeInput,
@@ -74,9 +84,9 @@ fn warp_map(c: &mut Criterion) {
     });
 }
 
-/// A tracker's warp (`nonrigid`): 81 nodes 8 mm apart on a 64 mm square of a 100 mm map,
-/// each moved up to 0.5 mm, reach 16 mm, every node a candidate of every surfel; 100 000
-/// surfels, most beyond the reach and left alone.
+/// A tracker's warp (`nonrigid`): 81 nodes 8 mm apart on a 64 mm square in the middle of a
+/// 100 mm square map of 100 000 surfels, each node moved up to 0.5 mm, reach 16 mm (so almost
+/// every surfel has nodes within it), every node a candidate of every surfel.
 fn warp_map_reach(c: &mut Criterion) {
     let nodes: Vec<DeformationNode> = (0..81)
         .map(|i| {
@@ -87,18 +97,7 @@ fn warp_map_reach(c: &mut Criterion) {
         .collect();
     let d = Deformation::new(nodes, 4, Window::All).within(0.016).timed_by(SurfelTime::LastSeen);
     let map: Vec<Surfel> = (0..100_000u32).map(|i| sheet_surfel((i % 316) as f32 / 316.0 * 0.1, (i / 316) as f32 / 316.0 * 0.1, 0)).collect();
-    c.bench_function("deformation-warp-map-reach/100000", |b| {
-        b.iter_batched(
-            || map.clone(),
-            |mut m| {
-                use rayon::prelude::*;
-                let w = d.warper();
-                m.par_iter_mut().for_each(|s| w.warp_surfel_as_motion(s));
-                m
-            },
-            criterion::BatchSize::LargeInput,
-        )
-    });
+    bench_warp(c, "deformation-warp-map-reach/100000", &d, &map, true);
 }
 
 /// A surfel at (x, y) on the plane z = 30 mm, facing +z, last seen at frame `t`.
