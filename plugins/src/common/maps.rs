@@ -35,6 +35,9 @@ pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sig
     let r = radius as i64;
     let inv_s = -0.5 / (sigma_space_px * sigma_space_px);
     let inv_r = -0.5 / (sigma_range_m * sigma_range_m);
+    // The spatial exponent of each window offset, row-major: computed once, not per pixel.
+    let spatial: Vec<f32> = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| ((dx * dx + dy * dy) as f32) * inv_s)).collect();
+    let side = 2 * r + 1;
     let mut out = DepthMap::new(w, h);
     out.data_mut().par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
         for (x, out) in row.iter_mut().enumerate() {
@@ -48,16 +51,18 @@ pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sig
                 if yy < 0 || yy >= h as i64 {
                     continue;
                 }
+                let source = &depth.data()[yy as usize * w..(yy as usize + 1) * w];
                 for dx in -r..=r {
                     let xx = x as i64 + dx;
                     if xx < 0 || xx >= w as i64 {
                         continue;
                     }
-                    let d = depth.at(xx as usize, yy as usize);
+                    let d = source[xx as usize];
                     if d <= 0.0 {
                         continue;
                     }
-                    let wgt = (((dx * dx + dy * dy) as f32) * inv_s + (d - c) * (d - c) * inv_r).exp();
+                    // The centre's weight is exp(−0) = 1 exactly.
+                    let wgt = if dx == 0 && dy == 0 { 1.0 } else { (spatial[((dy + r) * side + dx + r) as usize] + (d - c) * (d - c) * inv_r).exp() };
                     sum += wgt * d;
                     wsum += wgt;
                 }
@@ -270,6 +275,36 @@ mod tests {
                 }
             }
             assert!(seen > 1000, "{seen} normals");
+        }
+    }
+
+    #[test]
+    fn the_bilateral_filter_is_its_weighted_mean() {
+        let mut depth = rough_depth(40, 30);
+        depth.data_mut().iter_mut().filter(|d| d.is_nan()).for_each(|d| *d = 0.0);
+        for (radius, sigma_px, sigma_m) in [(1, 2.0f32, 0.0008f32), (2, 1.5, 0.003)] {
+            let f = bilateral_depth(&depth, radius, sigma_px, sigma_m);
+            let (inv_s, inv_r, r) = (-0.5 / (sigma_px * sigma_px), -0.5 / (sigma_m * sigma_m), radius as i64);
+            for y in 0..30i64 {
+                for x in 0..40i64 {
+                    let c = depth.at(x as usize, y as usize);
+                    let (mut sum, mut wsum) = (0.0f32, 0.0f32);
+                    for dy in -r..=r {
+                        for dx in -r..=r {
+                            let (xx, yy) = (x + dx, y + dy);
+                            if c <= 0.0 || !(0..40).contains(&xx) || !(0..30).contains(&yy) || depth.at(xx as usize, yy as usize) <= 0.0 {
+                                continue;
+                            }
+                            let d = depth.at(xx as usize, yy as usize);
+                            let wgt = (((dx * dx + dy * dy) as f32) * inv_s + (d - c) * (d - c) * inv_r).exp();
+                            sum += wgt * d;
+                            wsum += wgt;
+                        }
+                    }
+                    let want = if c <= 0.0 { 0.0 } else { sum / wsum };
+                    assert_eq!(f.at(x as usize, y as usize).to_bits(), want.to_bits(), "pixel ({x}, {y}), radius {radius}");
+                }
+            }
         }
     }
 
