@@ -164,9 +164,10 @@ pub fn intensity_ntsc(rgb: [u8; 3]) -> f32 {
     0.2989 * f32::from(rgb[0]) + 0.5870 * f32::from(rgb[1]) + 0.1140 * f32::from(rgb[2])
 }
 
-/// The NTSC intensity image of a colour image, in [0, 255].
+/// The NTSC intensity image of a colour image, in [0, 255] (pixels in parallel).
 pub fn gray_from_rgb(src: &Rgb8) -> GrayF32 {
-    let data = src.data().chunks_exact(3).map(|p| intensity_ntsc([p[0], p[1], p[2]])).collect();
+    use rayon::prelude::*;
+    let data = src.data().par_chunks_exact(3).map(|p| intensity_ntsc([p[0], p[1], p[2]])).collect();
     Image { width: src.width(), height: src.height(), data }
 }
 

@@ -122,7 +122,7 @@ pub fn live(
     };
     let g = geometry(frame, cam, &params);
     let mut gray = gray_from_rgb(&frame.colour);
-    gray.data_mut().iter_mut().for_each(|v| *v /= 255.0);
+    gray.data_mut().par_iter_mut().for_each(|v| *v /= 255.0);
     if let Some(restore) = restore {
         gray = restore(gray);
     }
