@@ -176,37 +176,69 @@ impl Deformation {
     /// broken by index), those beyond [`Deformation::reach_m`] left out. With a reach and fewer
     /// than k + 1 nodes in it, d_max is the reach.
     pub fn influences_among(&self, p: &Point3<f64>, candidates: impl Iterator<Item = usize>) -> Vec<(usize, f64)> {
+        self.with_influences(p, candidates, <[(usize, f64)]>::to_vec)
+    }
+
+    /// Calls `f` with [`Deformation::influences_among`] held on the stack (k < 16) rather than
+    /// in a new vector: the per-surfel path of a map warp.
+    pub fn with_influences<R>(&self, p: &Point3<f64>, candidates: impl Iterator<Item = usize>, f: impl FnOnce(&[(usize, f64)]) -> R) -> R {
+        const INLINE: usize = 16;
         let k = self.k.max(1);
+        if k < INLINE {
+            let mut buf = [(0usize, 0.0f64); INLINE];
+            let n = self.influences_into(p, candidates, &mut buf[..=k]);
+            f(&buf[..n])
+        } else {
+            let mut buf = vec![(0usize, 0.0f64); k + 1];
+            let n = self.influences_into(p, candidates, &mut buf);
+            f(&buf[..n])
+        }
+    }
+
+    /// [`Deformation::influences_among`] into `buf` (k + 1 entries): returns how many of its
+    /// first entries hold the influences.
+    fn influences_into(&self, p: &Point3<f64>, candidates: impl Iterator<Item = usize>, buf: &mut [(usize, f64)]) -> usize {
+        let cap = buf.len();
+        let k = cap - 1;
         let reach2 = self.reach_m.map_or(f64::INFINITY, |r| r * r);
-        // The k + 1 nearest candidates by squared distance (then index), kept sorted in a short
-        // list: one pass over the window, no sort of it.
-        let mut d: Vec<(usize, f64)> = Vec::with_capacity(k + 2);
+        // The k + 1 nearest candidates by squared distance (then index), kept sorted: one pass
+        // over the window, an insertion from the back, no sort of it.
+        let mut len = 0;
         for i in candidates {
             let di = (p - self.nodes[i].position_m).norm_squared();
-            if di > reach2 || (d.len() > k && di >= d[k].1) {
+            if di > reach2 || (len == cap && di >= buf[k].1) {
                 continue;
             }
-            let at = d.partition_point(|x| x.1 < di || (x.1 == di && x.0 < i));
-            d.insert(at, (i, di));
-            d.truncate(k + 1);
+            let before = |x: &(usize, f64)| x.1 < di || (x.1 == di && x.0 < i);
+            let mut at = len.min(k);
+            while at > 0 && !before(&buf[at - 1]) {
+                buf[at] = buf[at - 1];
+                at -= 1;
+            }
+            buf[at] = (i, di);
+            len = (len + 1).min(cap);
         }
+        let d = &mut buf[..len];
         d.iter_mut().for_each(|x| x.1 = x.1.sqrt());
-        let d_max = match (d.get(k), self.reach_m) {
-            (Some(&(_, dk)), _) => dk,
-            (None, Some(reach)) => reach,
-            (None, None) => d.last().map_or(0.0, |&(_, dl)| 1.01 * dl),
+        let d_max = match (len > k, self.reach_m) {
+            (true, _) => d[k].1,
+            (false, Some(reach)) => reach,
+            (false, None) => d.last().map_or(0.0, |&(_, dl)| 1.01 * dl),
         };
-        d.truncate(k);
-        let mut w: Vec<(usize, f64)> = d.iter().map(|&(i, di)| (i, if d_max > 0.0 { (1.0 - di / d_max).max(0.0).powi(2) } else { 1.0 })).collect();
+        let n = len.min(k);
+        let w = &mut buf[..n];
+        w.iter_mut().for_each(|x| x.1 = if d_max > 0.0 { (1.0 - x.1 / d_max).max(0.0).powi(2) } else { 1.0 });
         let sum: f64 = w.iter().map(|x| x.1).sum();
         if sum > 0.0 {
             w.iter_mut().for_each(|x| x.1 /= sum);
-        } else if let Some(first) = w.first_mut() {
+            n
+        } else if n > 0 {
             // Every node is exactly at d_max: fall back to the nearest one alone.
-            first.1 = 1.0;
-            w.truncate(1);
+            w[0].1 = 1.0;
+            1
+        } else {
+            0
         }
-        w
     }
 
     /// Warps a point of time `time`, Eq. (5): `φ(v) = Σ w_n [R_n (v − g_n) + g_n + t_n]`.
@@ -344,12 +376,12 @@ impl Warper<'_> {
         if near.is_empty() {
             return;
         }
-        let infl = d.influences_among(&p, near.iter().copied().filter(|i| r.contains(i)));
-        if infl.is_empty() {
-            return;
-        }
-        s.normal = blend_normal(&s.normal.cast(), &infl, |i| self.normal_maps[i]).cast();
-        s.position_m = d.warp_with(&p, &infl).cast();
+        d.with_influences(&p, near.iter().copied().filter(|i| r.contains(i)), |infl| {
+            if !infl.is_empty() {
+                s.normal = blend_normal(&s.normal.cast(), infl, |i| self.normal_maps[i]).cast();
+                s.position_m = d.warp_with(&p, infl).cast();
+            }
+        });
     }
 
     /// Warps a surfel as [`Self::warp_surfel`] and adds its displacement to

@@ -187,3 +187,40 @@ fn a_reach_leaves_far_points_alone_and_the_grid_agrees_with_the_scan() {
     Deformation { reach_m: None, ..d.clone() }.warp_surfel(&mut far);
     assert!((f64::from(far.position_m.z) - 0.001).abs() < 1e-9);
 }
+
+/// Eq. (7) by its definition: every candidate within the reach sorted by distance (then index),
+/// the (k+1)-th nearest (or the reach, or 1.01 × the farthest) as d_max, the k nearest weighted
+/// `(1 − d / d_max)²` and normalised.
+fn influences_by_definition(d: &Deformation, p: &Point3<f64>) -> Vec<(usize, f64)> {
+    let k = d.k.max(1);
+    let mut all: Vec<(usize, f64)> =
+        (0..d.nodes.len()).map(|i| (i, (p - d.nodes[i].position_m).norm_squared())).filter(|x| d.reach_m.is_none_or(|r| x.1 <= r * r)).collect();
+    all.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    let dist: Vec<(usize, f64)> = all.iter().map(|&(i, d2)| (i, d2.sqrt())).collect();
+    let d_max = match (dist.get(k), d.reach_m) {
+        (Some(x), _) => x.1,
+        (None, Some(r)) => r,
+        (None, None) => dist.last().map_or(0.0, |x| 1.01 * x.1),
+    };
+    let w: Vec<(usize, f64)> = dist.iter().take(k).map(|&(i, di)| (i, if d_max > 0.0 { (1.0 - di / d_max).max(0.0).powi(2) } else { 1.0 })).collect();
+    let sum: f64 = w.iter().map(|x| x.1).sum();
+    if sum > 0.0 { w.iter().map(|&(i, x)| (i, x / sum)).collect() } else { w.first().map(|&(i, _)| vec![(i, 1.0)]).unwrap_or_default() }
+}
+
+/// The stack path (k < 16) and the heap path (k ≥ 16) of the influences match the definition,
+/// to the bit, with and without a reach, on nodes with tied distances (a lattice) and on points
+/// with fewer than k + 1 nodes in reach.
+#[test]
+fn influences_match_their_definition_on_both_paths() {
+    let nodes: Vec<DeformationNode> = (0..64).map(|i| DeformationNode::identity(Point3::new((i % 8) as f64 * 0.004, (i / 8) as f64 * 0.004, 0.0), 0)).collect();
+    for k in [1, 4, 8, 15, 16, 24] {
+        for reach in [None, Some(0.006), Some(0.02)] {
+            let d = Deformation { reach_m: reach, ..Deformation::new(nodes.clone(), k, Window::All) };
+            for p in [Point3::new(0.014, 0.014, 0.0), Point3::new(0.0131, 0.0077, 0.002), Point3::new(-0.003, 0.029, 0.001), Point3::new(0.2, 0.2, 0.0)] {
+                let got = d.influences(&p, 0);
+                assert_eq!(got, influences_by_definition(&d, &p), "k {k}, reach {reach:?}, point {p}");
+                assert_eq!(d.with_influences(&p, 0..nodes.len(), <[(usize, f64)]>::to_vec), got);
+            }
+        }
+    }
+}
