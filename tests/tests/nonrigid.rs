@@ -63,6 +63,12 @@ fn on_a_moving_wall_the_nonrigid_tracker_beats_the_rigid_one_and_on_a_still_wall
     // the seven 320 × 320 rigid presets.
     assert!(skipped >= 10.0, "{skipped} of {FRAMES} frames skipped the warp solve on a still wall");
     assert_eq!(warped.counters_sum.get("nonrigid.nonrigid_probe_skipped"), None, "the moving wall was probed, not solved every frame");
+    // Once a window of kept warps says the wall clearly moves, the rigid start stops after the
+    // coarse levels on all but every `moving_probe_every_frames`-th frame (the joint solve
+    // refines the camera at level 0); never on the still wall.
+    let coarse = warped.counters_sum.get("nonrigid.nonrigid_coarse_start").copied().unwrap_or(0.0);
+    assert!(coarse >= 20.0, "{coarse} of {FRAMES} frames of the moving wall started from the coarse levels");
+    assert_eq!(warped_still.counters_sum.get("nonrigid.nonrigid_coarse_start"), None, "a still wall never starts coarse");
 }
 
 /// The first frame whose warp solve had model points to judge (its gain counted).

@@ -27,6 +27,7 @@
 
 pub(crate) mod frames;
 mod gn;
+mod register;
 mod relight;
 mod start;
 mod terms;
@@ -36,13 +37,13 @@ pub use terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_si
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::registry::BuildEnv;
-use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, TrackStatus, Tracker, register};
+use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, Tracker, register};
 
 use serde::{Deserialize, Serialize};
 
 use frames::{DepthPrep, Level};
-use gn::{Weights, accumulate};
-use relight::{Lighting, Relighter, Undivide, load_light};
+use gn::Weights;
+use relight::{Lighting, Undivide, load_light};
 
 /// What the live frame is registered to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -200,6 +201,8 @@ pub struct IcpRgb {
     missing: Option<String>,
     /// The table that multiplies a divided fall-off back in (`relight::Undivide`).
     undivide: Option<Undivide>,
+    /// A registration stopped after the coarse levels (`register.rs`).
+    unfinished: Option<Box<register::Unfinished>>,
 }
 
 /// How far the frame's depth is trusted, by its source (measured or estimated).
@@ -217,14 +220,14 @@ impl Plugin for IcpRgb {
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         let (light, missing) = load_light(&params.light_file, env)?;
-        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None })
+        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None, unfinished: None })
     }
 }
 
 impl IcpRgb {
     /// A tracker with no history (no previous frame, no velocity).
     pub fn new(params: IcpRgbParams) -> Self {
-        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None }
+        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None, unfinished: None }
     }
 
     /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
@@ -333,147 +336,6 @@ impl IcpRgb {
     pub(crate) fn previous_level0(&self) -> Option<&Level> {
         self.previous.as_ref().and_then(|p| p.first())
     }
-
-    /// [`IcpRgb::register`] on a prepared live pyramid ([`IcpRgb::live_pyramid`]).
-    pub(crate) fn register_pyramid(
-        &mut self,
-        live: Vec<Level>,
-        depth_source: DepthSource,
-        model: Option<&ModelView>,
-        t_world_prev: &Iso3,
-        initial: bool,
-        ctx: &mut Context,
-    ) -> Result<(TrackResult, Option<f64>), StageError> {
-        let cam = ctx.rig.camera();
-        let prep = self.params.depth_prep();
-        let prior = match self.params.motion_model {
-            MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
-            MotionModel::None => Iso3::identity(),
-        };
-        let model = if self.params.mode == Mode::FrameToModel { model } else { None };
-        let clock = std::time::Instant::now();
-        let reference = frames::reference(model, self.previous.as_ref().and_then(|p| p.first()), cam, LEVELS, &prep);
-        ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
-        let clock = std::time::Instant::now();
-        let Some(reference) = reference else {
-            return Ok((self.without_reference(live, t_world_prev * prior, ctx), None));
-        };
-        let photo = match (self.params.rgb_reference, &self.previous) {
-            (RgbReference::PreviousFrame, Some(p)) => p,
-            _ => &reference,
-        };
-        let noise = self.depth_noise(depth_source);
-        let w = self.weights(&noise);
-        // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
-        let relighter = self.light.as_ref().map(Relighter::new);
-        let albedo: Option<Vec<GrayF32>> = relighter.as_ref().map(|r| live.iter().map(|lv| r.live_albedo(lv)).collect());
-        let lit = |level: usize| relighter.as_ref().zip(albedo.as_ref()).map(|(r, a)| (r, &a[level]));
-        let initial = initial.then(|| {
-            let inp = gn::Inputs { live: &live[0], reference: &reference[0], photo: &photo[0], light: lit(0), stride: self.params.stride_l0 as usize };
-            accumulate(&inp, &prior, &w).icp_rms()
-        });
-        let Solution { t, iterations: total_iters, fin, covariance } = self.coarse_to_fine([&live, &reference, photo], prior, &w, &lit);
-        ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
-        let jump = (prior.inverse() * t).translation.vector.norm();
-        let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
-        let pose_sigma_m = covariance.map_or(f64::INFINITY, |c| c.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt());
-        let why = self.verdict(&fin, &noise, inlier_share, jump, pose_sigma_m);
-        let lost = why.is_some();
-        ctx.count("pose_sigma_mm", pose_sigma_m * 1e3);
-        ctx.count("icp_rms_sigmas", fin.icp_rms_sigmas());
-        ctx.count("icp_inliers", fin.icp_n as f64);
-        ctx.count("rgb_pixels", fin.rgb_n as f64);
-        ctx.count("inlier_share", inlier_share);
-        ctx.count("iterations", f64::from(total_iters));
-        let status = if lost {
-            ctx.warn(format!("tracking lost: {}", why.unwrap_or_default()));
-            TrackStatus::Lost
-        } else {
-            self.velocity = Some(t);
-            self.previous = Some(live);
-            TrackStatus::Tracked
-        };
-        let result = TrackResult {
-            t_world_cam: t_world_prev * t,
-            status,
-            inliers: fin.icp_n,
-            residual_rms: fin.icp_rms(),
-            covariance,
-            iterations: total_iters as usize,
-            warp: None,
-        };
-        Ok((result, initial))
-    }
-
-    /// Why a solution is lost, if it is: too few inliers, a residual far above what the noise
-    /// explains (in units of each residual's σ, times the floor: exactly the RMS in metres when
-    /// the frame carries no σ), a jump from the prior, or a pose the data do not constrain.
-    fn verdict(&self, fin: &gn::System, noise: &DepthNoise, inlier_share: f64, jump: f64, pose_sigma_m: f64) -> Option<String> {
-        let residual_m = fin.icp_rms_sigmas() * noise.sigma_icp_m;
-        if inlier_share < noise.min_inlier_fraction {
-            Some(format!("{:.0} % of the live pixels are ICP inliers (min_inlier_fraction {:.0} %)", 100.0 * inlier_share, 100.0 * noise.min_inlier_fraction))
-        } else if residual_m.is_nan() || residual_m > noise.max_residual_m {
-            Some(format!(
-                "ICP residual {:.2} σ (max_residual_m / sigma_icp_m = {:.2} σ; RMS {:.3} mm)",
-                fin.icp_rms_sigmas(),
-                noise.max_residual_m / noise.sigma_icp_m,
-                fin.icp_rms() * 1e3
-            ))
-        } else if jump > self.params.max_jump_m {
-            Some(format!("the pose jumps {:.2} mm from the prior (max_jump_m {:.2} mm)", jump * 1e3, self.params.max_jump_m * 1e3))
-        } else if pose_sigma_m.is_nan() || pose_sigma_m > self.params.max_pose_sigma_m {
-            Some(format!(
-                "the pose is not constrained: σ {:.2} mm along its worst direction (max_pose_sigma_m {:.2} mm)",
-                pose_sigma_m * 1e3,
-                self.params.max_pose_sigma_m * 1e3
-            ))
-        } else {
-            None
-        }
-    }
-
-    /// Gauss-Newton on the pyramid from the coarsest level, starting at `prior` (Eqs. 2–4):
-    /// the pose increment, the iterations run, the last level-0 system, whose figures judge the
-    /// result (ElasticFusion's convention), and the pose's covariance.
-    fn coarse_to_fine<'a>(&self, pyramids: [&'a [Level]; 3], prior: Iso3, w: &Weights, lit: &dyn Fn(usize) -> gn::Relight<'a>) -> Solution {
-        let [live, reference, photo] = pyramids;
-        let iters = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
-        let stride_l0 = self.params.stride_l0 as usize;
-        let inputs = |level: usize| -> gn::Inputs<'a> {
-            let stride = if level == 0 { stride_l0 } else { 1 };
-            gn::Inputs { live: &live[level], reference: &reference[level], photo: &photo[level], light: lit(level), stride }
-        };
-        let mut t = prior;
-        let mut total_iters = 0;
-        let mut fin = None;
-        for level in (0..LEVELS).rev() {
-            for _ in 0..iters[level] {
-                let sys = accumulate(&inputs(level), &t, w);
-                if level == 0 {
-                    fin = Some(sys);
-                }
-                let Some(delta) = sys.step() else { break };
-                if !delta.iter().all(|v| v.is_finite()) {
-                    break;
-                }
-                t = capsule_slam_framework::geometry::renormalised(capsule_slam_framework::geometry::exp_se3(&delta) * t);
-                total_iters += 1;
-                if delta.norm() < self.params.convergence {
-                    break;
-                }
-            }
-        }
-        let fin = fin.unwrap_or_else(|| accumulate(&inputs(0), &t, w));
-        Solution { t, iterations: total_iters, fin, covariance: fin.a.full().try_inverse() }
-    }
-}
-
-/// What [`IcpRgb::coarse_to_fine`] found.
-struct Solution {
-    t: Iso3,
-    iterations: u32,
-    fin: gn::System,
-    covariance: Option<nalgebra::Matrix6<f64>>,
 }
 
 register!(Tracker, IcpRgb);

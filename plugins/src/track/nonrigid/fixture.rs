@@ -127,7 +127,7 @@ impl SolverCase {
     /// same work); returns whether it solved.
     pub fn solve(&mut self) -> bool {
         let saved = self.tracker.nodes.clone();
-        let solved = matches!(self.tracker.fit(&self.points, &self.live, &Iso3::identity()), Ok(Fit::Solved { .. }));
+        let solved = matches!(self.tracker.fit(&self.points, &self.live, &Iso3::identity(), true), Ok(Fit::Solved { .. }));
         self.tracker.nodes = saved;
         solved
     }

@@ -76,7 +76,7 @@ use points::ModelPoint;
 use rayon::prelude::*;
 use solve::{Cache, Problem};
 pub(crate) use verdict::Fit;
-use verdict::{Gains, Probe, windowed_gain};
+use verdict::{Gains, Moving, Probe, windowed_gain};
 
 /// The non-rigid tracker.
 pub struct Nonrigid {
@@ -88,6 +88,8 @@ pub struct Nonrigid {
     recent_gains: std::collections::VecDeque<f64>,
     /// The still wall's probe schedule (`still_probe_every_frames`).
     probe: Probe,
+    /// The moving wall's coarse rigid starts (`moving_probe_every_frames`).
+    moving: Moving,
 }
 
 impl Plugin for Nonrigid {
@@ -114,6 +116,7 @@ impl Nonrigid {
             cache: Cache::default(),
             recent_gains: Default::default(),
             probe: Probe::default(),
+            moving: Moving::default(),
         })
     }
 }
@@ -152,7 +155,15 @@ impl Tracker for Nonrigid {
             _ => (Vec::new(), false),
         };
         let ms_points = clock.elapsed().as_secs_f64() * 1e3;
-        let (rigid, _) = self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?;
+        // A clearly moving wall: the joint solve refines the camera at level 0 itself.
+        let p = &self.params;
+        let coarse = warps && p.camera == CameraMode::Joint && self.moving.shortens(p.gain_window_frames, p.moving_probe_every_frames);
+        let rigid = if coarse {
+            ctx.count("nonrigid_coarse_start", 1.0);
+            self.rigid.register_pyramid_coarse(live, frame.depth_source, model, t_world_prev, ctx)?
+        } else {
+            self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?.0
+        };
         if model.is_none() || !warps || rigid.status == TrackStatus::Lost {
             return Ok(rigid);
         }
@@ -163,9 +174,6 @@ impl Tracker for Nonrigid {
             let relit = points::relight(&mut points, light, ctx.rig.camera(), &m.t_world_cam, &rigid.t_world_cam);
             ctx.count("nonrigid_relit_points", relit as f64);
         }
-        // A tracked frame's pyramid is now the rigid tracker's previous frame: borrow it.
-        let Some(pyramid) = self.rigid.take_previous() else { return Ok(rigid) };
-        let level = &pyramid[(self.params.level as usize).min(pyramid.len() - 1)];
         let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, self.params.max_nodes as usize);
         if refused > 0 {
             ctx.warn(format!("{refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
@@ -173,9 +181,27 @@ impl Tracker for Nonrigid {
         ctx.count("nonrigid_nodes_added", added as f64);
         ctx.count("ms_nonrigid_points", ms_points);
         let clock = std::time::Instant::now();
-        let outcome = self.solve(&points, mostly_fill_in, level, &rigid, ctx);
+        let mut rigid = rigid;
+        let mut outcome = self.solve_on_live(&points, mostly_fill_in, &rigid, !coarse, ctx);
+        if coarse {
+            if matches!(outcome, Ok(Some(_))) {
+                self.rigid.drop_unfinished();
+            } else {
+                // The solve did not stand on the coarse start: finish the rigid start at level 0
+                // and solve as on any other frame (the model points stay relit to the coarse pose).
+                ctx.count("nonrigid_coarse_start_finished", 1.0);
+                self.moving = Moving::default();
+                match self.rigid.finish_fine(ctx) {
+                    Some(fine) if fine.status == TrackStatus::Lost => return Ok(fine),
+                    Some(fine) => {
+                        rigid = fine;
+                        outcome = self.solve_on_live(&points, mostly_fill_in, &rigid, true, ctx);
+                    }
+                    None => ctx.warn("the coarse rigid start could not be finished at level 0: its pose stands"),
+                }
+            }
+        }
         ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, clock.elapsed().as_secs_f64() * 1e3);
-        self.rigid.restore_previous(pyramid);
         match outcome {
             Ok(Some(result)) => {
                 if self.params.camera == CameraMode::Joint {
@@ -194,19 +220,48 @@ impl Tracker for Nonrigid {
 }
 
 impl Nonrigid {
+    /// [`Nonrigid::solve`] on the live frame's level, which the rigid start has made its
+    /// previous frame (borrowed for the solve).
+    fn solve_on_live(
+        &mut self,
+        points: &[ModelPoint],
+        mostly_fill_in: bool,
+        rigid: &TrackResult,
+        judge: bool,
+        ctx: &mut Context,
+    ) -> Result<Option<TrackResult>, StageError> {
+        let Some(pyramid) = self.rigid.take_previous() else { return Ok(None) };
+        let level = &pyramid[(self.params.level as usize).min(pyramid.len() - 1)];
+        let outcome = self.solve(points, mostly_fill_in, level, rigid, judge, ctx);
+        self.rigid.restore_previous(pyramid);
+        outcome
+    }
+
     /// The joint solve from the rigid result, with the counters and fallback warnings. When the
     /// model points are `mostly_fill_in` (the previous frame's, `fill_in_below_share`), the warp
     /// can explain one frame's motion only, so a still verdict says nothing of the wall and does
-    /// not lengthen the still-probe streak.
+    /// not lengthen the still-probe streak. Unless `judge`, the warp is kept without the model
+    /// selection (from a coarse rigid start, `moving_probe_every_frames`), and a fallback is
+    /// the caller's to tell.
     fn solve(
         &mut self,
         points: &[ModelPoint],
         mostly_fill_in: bool,
         level: &Level,
         rigid: &TrackResult,
+        judge: bool,
         ctx: &mut Context,
     ) -> Result<Option<TrackResult>, StageError> {
-        match self.fit(points, level, &rigid.t_world_cam)? {
+        let fit = self.fit(points, level, &rigid.t_world_cam, judge)?;
+        if judge {
+            let kept = match &fit {
+                Fit::Solved { judged, .. } => judged.unwrap_or(f64::NAN),
+                _ => f64::NAN,
+            };
+            self.moving.judged(kept.is_finite(), kept, 2.0 * self.params.min_rms_gain);
+        }
+        match fit {
+            Fit::Fallback(_) if !judge => Ok(None),
             Fit::Fallback(why) => {
                 self.probe = Probe::default();
                 ctx.warn(format!("rigid pose kept, no warp: {why}"));
@@ -226,7 +281,7 @@ impl Nonrigid {
                 gains.count(ctx);
                 Ok(None)
             }
-            Fit::Solved { t_world_cam, warp, outcome, nodes, points, held } => {
+            Fit::Solved { t_world_cam, warp, outcome, nodes, points, held, .. } => {
                 self.probe = Probe::default();
                 if held {
                     ctx.count("nonrigid_camera_held", 1.0);
@@ -294,12 +349,20 @@ impl Nonrigid {
             nb.retain(|&n| (nodes[n].position_m - g).norm() <= p.max_edge_m && normals[j].dot(&normals[n]) >= cos_edge);
         }
         let normals = priors::smoothed_normals(&normals, &graph.neighbours, p.slide_normal_passes);
+        // A point whose nodes within reach are all solved keeps its first binding (the same
+        // candidates, renumbered in the same order: the same k nearest and weights).
         let bound: Vec<(&ModelPoint, Vec<(usize, f64)>)> = points
             .par_iter()
             .zip(&near)
-            .filter_map(|(q, near)| {
-                let near = near.iter().filter_map(|&i| (index[i] != usize::MAX).then_some(index[i]));
-                let b = graph.deformation.influences_among(&q.x_world_m, near);
+            .zip(first)
+            .filter_map(|((q, near), mut first)| {
+                let b = if near.iter().all(|&i| index[i] != usize::MAX) {
+                    first.iter_mut().for_each(|(i, _)| *i = index[*i]);
+                    first
+                } else {
+                    let near = near.iter().filter_map(|&i| (index[i] != usize::MAX).then_some(index[i]));
+                    graph.deformation.influences_among(&q.x_world_m, near)
+                };
                 (!b.is_empty()).then_some((q, b))
             })
             .collect();
@@ -311,12 +374,14 @@ impl Nonrigid {
     /// registration of a model to a view, as the `deformation` closer's through the warp.
     pub(crate) fn fit_fresh(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3) -> Result<Fit, StageError> {
         self.nodes.cover(points, self.params.node_spacing_m, self.params.max_nodes as usize);
-        self.fit(points, level, t_start)
+        self.fit(points, level, t_start, true)
     }
 
     /// Fits the warp and the pose from `t_start` to the live `level`, the model `points` bound to
-    /// the nodes near them; moves the nodes when it succeeds.
-    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3) -> Result<Fit, StageError> {
+    /// the nodes near them; moves the nodes when it succeeds. Unless `judge`, the warp is kept
+    /// without the model selection, and the camera is never held at `t_start` (a coarse start,
+    /// `moving_probe_every_frames`: a step too large falls back instead).
+    pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3, judge: bool) -> Result<Fit, StageError> {
         let clock = std::time::Instant::now();
         let Some((mut problem, solve_ids, used)) = self.problem(points) else {
             return Ok(Fit::Fallback("no node has enough model points".into()));
@@ -325,7 +390,7 @@ impl Nonrigid {
         let p = &self.params;
         let mut outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
         let mut held = false;
-        if problem.camera && p.hold_camera_on_step && self.camera_step_too_large(t_start, &outcome.t_world_cam) {
+        if judge && problem.camera && p.hold_camera_on_step && self.camera_step_too_large(t_start, &outcome.t_world_cam) {
             // The warp again from the identity, the camera held at the rigid start.
             for n in &mut problem.graph.deformation.nodes {
                 *n = DeformationNode::identity(n.position_m, n.time);
@@ -371,8 +436,10 @@ impl Nonrigid {
         let (r1, r0) = outcome.icp_common_rms_m;
         let gain_chi2 = outcome.inliers as f64 * ((r0 * r0) / (r1 * r1).max(1e-30) - 1.0);
         let gains = Gains::of(&outcome);
-        let judged = windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames);
-        if judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (p.node_model.unknowns() * solve_ids.len()) as f64 {
+        let judged = if judge { Some(windowed_gain(&mut self.recent_gains, gains.icp, p.gain_window_frames)) } else { None };
+        if let Some(judged) = judged
+            && (judged < p.min_rms_gain || gain_chi2 < p.min_evidence * (p.node_model.unknowns() * solve_ids.len()) as f64)
+        {
             return Ok(Fit::Still(gains, judged));
         }
         // The map leads the moving wall by a share of this frame's solved motion (`warp_lead`).
@@ -387,7 +454,7 @@ impl Nonrigid {
             node.normal = d.warp_normal_with(&node.normal, &[(s, 1.0)]);
         }
         self.nodes.rebin();
-        Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome, held })
+        Ok(Fit::Solved { t_world_cam: outcome.t_world_cam, warp: d, nodes: solve_ids.len(), points: problem.points.len(), outcome, held, judged })
     }
 
     /// Whether the solve moved the camera from the rigid start `t_start` farther than

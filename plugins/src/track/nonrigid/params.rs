@@ -193,6 +193,15 @@ capsule_slam_framework::plugin_params! {
         /// without the warp solve's cost. A probe whose own gain reaches `min_rms_gain`, or any
         /// kept warp or fallback, ends it. 1: solve every frame.
         pub still_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
+        /// While the wall is clearly moving (the last `gain_window_frames` judged solves all kept
+        /// their warp with a mean gain of at least twice `min_rms_gain`; `camera = "joint"`), the
+        /// rigid start stops after the coarse levels on all but every this-many-th frame: the joint
+        /// solve refines the camera at level 0 itself, and the rigid start's level 0 (about a third
+        /// of its time) would be done twice. Those frames keep their warp unjudged (a gain from a
+        /// coarse start counts the camera's own refinement too); one whose solve falls back, or
+        /// would hold the camera at the coarse pose, finishes the rigid start at level 0 and is
+        /// solved again as any other frame (counter `nonrigid_coarse_start_finished`). 1: never.
+        pub moving_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
         /// Most nodes (SurfelWarp: 4096).
         pub max_nodes: u32 = 4096; unit = "-"; range = 1.0..=1.0e6;
         /// Warp also with depth estimated from the image (shape from shading): its view-dependent

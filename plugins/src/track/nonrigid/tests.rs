@@ -58,7 +58,7 @@ fn a_known_smooth_warp_is_recovered_from_its_depth() {
         let mut t = tracker(camera);
         t.params.node_model = model;
         t.nodes.cover(&points, t.params.node_spacing_m, 4096);
-        let Fit::Solved { warp, t_world_cam, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("{camera:?} {model:?}: fell back") };
+        let Fit::Solved { warp, t_world_cam, .. } = t.fit(&points, &live, &Iso3::identity(), true).unwrap() else { panic!("{camera:?} {model:?}: fell back") };
         let err = warp_error(&warp, &pts);
         assert!(err < 0.1e-3, "{camera:?} {model:?}: warp error {:.4} mm (before {:.4} mm)", err * 1e3, before * 1e3);
         let moved = t_world_cam.translation.vector.norm();
@@ -77,7 +77,7 @@ fn the_chord_iterations_reach_the_gauss_newton_solution() {
             (t.params.node_model, t.params.iterations, t.params.step_tolerance_m, t.params.reuse_factor) = (model, 30, 1e-9, reuse_factor);
             (t.params.min_rms_gain, t.params.min_evidence) = (0.0, 0.0);
             t.nodes.cover(&points, t.params.node_spacing_m, 4096);
-            let Fit::Solved { warp, t_world_cam, outcome, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else {
+            let Fit::Solved { warp, t_world_cam, outcome, .. } = t.fit(&points, &live, &Iso3::identity(), true).unwrap() else {
                 panic!("{model:?}, reuse {reuse_factor}: fell back")
             };
             let moved: Vec<Point3<f64>> = pts.iter().map(|(p, _)| warp.warp_point(&p.x_world_m, 0)).collect();
@@ -105,10 +105,10 @@ fn a_kept_warp_leads_the_wall_by_its_share_of_the_solved_motion() {
         t.params.warp_lead = lead;
         t.nodes.cover(&points, t.params.node_spacing_m, 4096);
         let before: Vec<Point3<f64>> = t.nodes.nodes.iter().map(|n| n.position_m).collect();
-        let Fit::Solved { warp, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("lead {lead}: frame 1 fell back") };
+        let Fit::Solved { warp, .. } = t.fit(&points, &live, &Iso3::identity(), true).unwrap() else { panic!("lead {lead}: frame 1 fell back") };
         let moved: Vec<Vector3<f64>> = t.nodes.nodes.iter().zip(&before).map(|(n, b)| n.position_m - b).collect();
         let next: Vec<ModelPoint> = points.iter().map(|p| ModelPoint { x_world_m: warp.warp_point(&p.x_world_m, 0), ..*p }).collect();
-        let Fit::Solved { outcome, .. } = t.fit(&next, &level(0.001), &Iso3::identity()).unwrap() else { panic!("lead {lead}: frame 2 fell back") };
+        let Fit::Solved { outcome, .. } = t.fit(&next, &level(0.001), &Iso3::identity(), true).unwrap() else { panic!("lead {lead}: frame 2 fell back") };
         (warp, moved, outcome.icp_rms_first_m)
     };
     let (seen, moved_seen, start_seen) = frames(0.0);
@@ -145,7 +145,7 @@ fn steady_starts_mm(lead: f64) -> Vec<f64> {
     let mut pts = points;
     (1..=8)
         .map(|f| {
-            let Fit::Solved { warp, outcome, .. } = t.fit(&pts, &level(0.0005 * f as f64), &Iso3::identity()).unwrap() else {
+            let Fit::Solved { warp, outcome, .. } = t.fit(&pts, &level(0.0005 * f as f64), &Iso3::identity(), true).unwrap() else {
                 panic!("lead {lead}: frame {f} fell back")
             };
             pts = pts.iter().map(|p| ModelPoint { x_world_m: warp.warp_point(&p.x_world_m, 0), ..*p }).collect();
@@ -175,7 +175,7 @@ fn the_iterations_stop_once_a_step_moves_nothing_by_more_than_the_tolerance() {
         // Model selection is not under test: a single step's gain is kept too.
         (t.params.min_rms_gain, t.params.min_evidence) = (0.0, 0.0);
         t.nodes.cover(&points, t.params.node_spacing_m, 4096);
-        let Fit::Solved { warp, outcome, .. } = t.fit(&points, &live, &Iso3::identity()).unwrap() else { panic!("tolerance {tolerance_m}: fell back") };
+        let Fit::Solved { warp, outcome, .. } = t.fit(&points, &live, &Iso3::identity(), true).unwrap() else { panic!("tolerance {tolerance_m}: fell back") };
         (outcome.iterations, warp_error(&warp, &pts))
     };
     let (all, exact) = fit(0.0);
@@ -371,24 +371,24 @@ fn bad_input_falls_back_without_a_panic() {
         let prep = GeometryParams { min_m: 0.001, max_m: 1.0, radius_px: 0, sigma_px: 1.0, sigma_m: 1.0, edge_jump_m: 0.01 };
         pyramid(DepthMap::new(160, 160), GrayF32::new(160, 160), (None, None), &cam(), 1, &prep).remove(0)
     };
-    assert!(matches!(t.fit(&points, &empty, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
+    assert!(matches!(t.fit(&points, &empty, &Iso3::identity(), true).unwrap(), Fit::Fallback(_)));
     // NaN depth everywhere.
     let nan = {
         let prep = GeometryParams { min_m: 0.001, max_m: 1.0, radius_px: 0, sigma_px: 1.0, sigma_m: 1.0, edge_jump_m: 0.01 };
         pyramid(DepthMap::from_fn(160, 160, |_, _| [f32::NAN]), GrayF32::new(160, 160), (None, None), &cam(), 1, &prep).remove(0)
     };
-    assert!(matches!(t.fit(&points, &nan, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
+    assert!(matches!(t.fit(&points, &nan, &Iso3::identity(), true).unwrap(), Fit::Fallback(_)));
     // A degenerate graph: one node, no edges.
     let (mut one, points, live) = setup(CameraMode::Joint, 0.0002);
     one.nodes = nodes::Nodes::new(one.params.reach_m);
     one.nodes.cover(&points[..1], one.params.node_spacing_m, 1);
-    match one.fit(&points, &live, &Iso3::identity()) {
+    match one.fit(&points, &live, &Iso3::identity(), true) {
         Ok(Fit::Solved { warp, .. }) => assert!(warp.nodes.iter().all(|n| n.translation_m.iter().all(|v| v.is_finite()))),
         Ok(Fit::Fallback(_) | Fit::Still(..)) | Err(_) => {}
     }
     // Model points with NaN positions bind no node.
     let bad = vec![ModelPoint { x_world_m: Point3::new(f64::NAN, 0.0, 0.03), n_world: -Vector3::z(), gray_ref: None, sigma_m: 0.0 }; 10];
-    assert!(matches!(t.fit(&bad, &live, &Iso3::identity()).unwrap(), Fit::Fallback(_)));
+    assert!(matches!(t.fit(&bad, &live, &Iso3::identity(), true).unwrap(), Fit::Fallback(_)));
 }
 
 #[test]
@@ -459,6 +459,31 @@ fn a_clearly_still_wall_is_solved_on_every_nth_frame_only() {
 }
 
 #[test]
+fn a_clearly_moving_wall_starts_from_the_coarse_levels_on_all_but_every_nth_frame() {
+    let mut moving = super::Moving::default();
+    // Not yet clearly moving: every frame runs the full rigid start.
+    assert!((0..10).all(|_| !moving.shortens(3, 8)));
+    // Three judged solves that kept a warp with a clear gain, one without: the streak ends.
+    moving.judged(true, 0.07, 0.06);
+    moving.judged(true, 0.07, 0.06);
+    moving.judged(true, 0.05, 0.06);
+    assert!(!moving.shortens(3, 8));
+    moving.judged(false, f64::NAN, 0.06);
+    assert_eq!(moving.streak, 0);
+    for _ in 0..3 {
+        moving.judged(true, 0.08, 0.06);
+    }
+    // Clearly moving: seven frames start coarse, the eighth runs the full start, and so on.
+    let coarse: Vec<bool> = (0..16).map(|_| moving.shortens(3, 8)).collect();
+    let full: Vec<usize> = (0..16).filter(|&i| !coarse[i]).collect();
+    assert_eq!(full, vec![7, 15]);
+    // Never when `moving_probe_every_frames` = 1; a still verdict on a full frame ends it.
+    assert!((0..10).all(|_| !moving.shortens(3, 1)));
+    moving.judged(false, 0.01, 0.06);
+    assert!((0..10).all(|_| !moving.shortens(3, 8)));
+}
+
+#[test]
 fn a_camera_step_beyond_the_limit_holds_the_camera_and_still_warps() {
     let (pts, points, live) = moved_wall();
     // A rigid start 1 mm off along the view: the joint solve takes the camera back by about
@@ -470,7 +495,7 @@ fn a_camera_step_beyond_the_limit_holds_the_camera_and_still_warps() {
         (t.params.hold_camera_on_step, t.params.max_camera_step_m) = (hold, 0.0003);
         (t.params.min_rms_gain, t.params.min_evidence) = (0.0, 0.0);
         t.nodes.cover(&points, t.params.node_spacing_m, 4096);
-        match (hold, t.fit(&points, &live, &t_start).unwrap()) {
+        match (hold, t.fit(&points, &live, &t_start, true).unwrap()) {
             (false, Fit::Fallback(why)) => assert!(why.contains("max_camera_step_m"), "{why}"),
             (true, Fit::Solved { t_world_cam, held, warp, .. }) => {
                 assert!(held && t_world_cam == t_start, "the camera stays at the rigid start");

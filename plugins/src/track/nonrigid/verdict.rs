@@ -1,6 +1,6 @@
 //! Model selection for the `nonrigid` tracker: what a fit did (`Fit`), the residual gains a
-//! warp is judged on (`Gains`), their window (`windowed_gain`) and the still-wall probe
-//! (`Probe`).
+//! warp is judged on (`Gains`), their window (`windowed_gain`), the still-wall probe (`Probe`)
+//! and the moving wall's coarse rigid start (`Moving`).
 
 use capsule_slam_framework::deformation::Deformation;
 use capsule_slam_framework::{Context, Iso3};
@@ -30,6 +30,40 @@ impl Probe {
     }
 }
 
+/// While the wall is clearly moving, the rigid start stops after the coarse levels on all but
+/// every n-th frame (`moving_probe_every_frames`).
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Moving {
+    /// Consecutive judged solves that kept a warp with a clear gain.
+    pub(crate) streak: u32,
+    /// Frames since the last full rigid start while clearly moving.
+    pub(crate) skipped: u32,
+}
+
+impl Moving {
+    /// Whether this frame's rigid start stops after the coarse levels (and counts it): the
+    /// wall has been clearly moving for `window` judged solves, and this is not an
+    /// `every`-th frame.
+    pub(crate) fn shortens(&mut self, window: u32, every: u32) -> bool {
+        if self.streak < window || self.skipped + 1 >= every {
+            self.skipped = 0;
+            return false;
+        }
+        self.skipped += 1;
+        true
+    }
+
+    /// Files a judged solve: a warp kept with a windowed gain `judged` of at least
+    /// `clear_gain` lengthens the streak; anything else ends it.
+    pub(crate) fn judged(&mut self, kept: bool, judged: f64, clear_gain: f64) {
+        if kept && judged >= clear_gain {
+            self.streak += 1;
+        } else {
+            *self = Self::default();
+        }
+    }
+}
+
 /// What a fit did.
 #[allow(clippy::large_enum_variant, reason = "one per frame, matched once; boxing the warp buys nothing")]
 pub(crate) enum Fit {
@@ -47,6 +81,8 @@ pub(crate) enum Fit {
         points: usize,
         /// Whether the camera was held at the rigid start (`hold_camera_on_step`).
         held: bool,
+        /// The windowed gain the warp was kept on (`None`: kept unjudged).
+        judged: Option<f64>,
     },
     /// Why the rigid pose stands.
     Fallback(String),

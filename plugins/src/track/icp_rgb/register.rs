@@ -1,0 +1,298 @@
+//! Registering a live pyramid to the reference, coarse to fine (Eqs. 2–4 on ElasticFusion's
+//! 3-level pyramid), and the loss verdict on the result.
+//!
+//! A caller that refines the pose at level 0 itself (the `nonrigid` tracker's joint solve on a
+//! clearly moving wall) may stop the registration after the coarse levels and level 0's first
+//! iteration, whose system the loss verdict needs anyway ([`IcpRgb::register_pyramid_coarse`]),
+//! and, where its own refinement does not stand, finish level 0 later
+//! ([`IcpRgb::finish_fine`]). The stopped registration keeps everything level 0 needs, so the
+//! finished result is the uninterrupted registration's to the bit.
+
+use capsule_slam_framework::frame::DepthSource;
+use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, StageError, TrackResult, TrackStatus};
+
+use super::frames::{self, Level};
+use super::gn::{self, Weights, accumulate};
+use super::relight::Relighter;
+use super::{DepthNoise, IcpRgb, LEVELS, Mode, MotionModel, RgbReference};
+
+/// What a registration stopped before level 0 keeps to finish there.
+pub(crate) struct Unfinished {
+    /// The reference pyramid.
+    reference: Vec<Level>,
+    /// The previous live frame's pyramid, which the photometric term compares with
+    /// (`rgb_reference = "previous-frame"`): the current frame is now `IcpRgb::previous`.
+    before: Option<Vec<Level>>,
+    /// The velocity before the coarse result replaced it.
+    velocity: Option<Iso3>,
+    /// The live albedo per level, where the photometric term is relit.
+    albedo: Option<Vec<GrayF32>>,
+    /// The motion prior the registration started from.
+    prior: Iso3,
+    /// Where the registration stopped.
+    run: Run,
+    /// The previous camera's pose.
+    t_world_prev: Iso3,
+    /// The frame's depth source.
+    depth_source: DepthSource,
+}
+
+/// Where a registration stops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stop {
+    /// At level 0, converged.
+    Fine,
+    /// After the coarse levels and level 0's first iteration, unless the pose there would be
+    /// declared lost.
+    Coarse,
+}
+
+/// The pose reached so far, the iterations run, and on the current level how many ran and
+/// whether it has ended (converged, or no step); the last level-0 system.
+#[derive(Clone, Copy)]
+struct Run {
+    t: Iso3,
+    iterations: u32,
+    on_level: u32,
+    level_ended: bool,
+    fin: Option<gn::System>,
+}
+
+impl IcpRgb {
+    /// [`IcpRgb::register`] on a prepared live pyramid ([`IcpRgb::live_pyramid`]).
+    pub(crate) fn register_pyramid(
+        &mut self,
+        live: Vec<Level>,
+        depth_source: DepthSource,
+        model: Option<&ModelView>,
+        t_world_prev: &Iso3,
+        initial: bool,
+        ctx: &mut Context,
+    ) -> Result<(TrackResult, Option<f64>), StageError> {
+        self.register_levels(live, depth_source, model, t_world_prev, initial, Stop::Fine, ctx)
+    }
+
+    /// [`IcpRgb::register_pyramid`] stopped after the coarse levels (levels 2 and 1) and level
+    /// 0's first iteration: the pose there, judged on that iteration's system as a finished
+    /// registration is on its last. A pose that would be lost there is finished at level 0 at
+    /// once (a lost frame is judged at its converged pose, as always). Otherwise the frame is
+    /// this tracker's previous frame already, and [`IcpRgb::finish_fine`] can run the rest of
+    /// level 0 until the next registration.
+    pub(crate) fn register_pyramid_coarse(
+        &mut self,
+        live: Vec<Level>,
+        depth_source: DepthSource,
+        model: Option<&ModelView>,
+        t_world_prev: &Iso3,
+        ctx: &mut Context,
+    ) -> Result<TrackResult, StageError> {
+        Ok(self.register_levels(live, depth_source, model, t_world_prev, false, Stop::Coarse, ctx)?.0)
+    }
+
+    /// Runs level 0 of the registration [`IcpRgb::register_pyramid_coarse`] stopped short of:
+    /// the result [`IcpRgb::register_pyramid`] would have given, to the bit. `None` when there
+    /// is none to finish (the last registration was not stopped, or was lost).
+    pub(crate) fn finish_fine(&mut self, ctx: &mut Context) -> Option<TrackResult> {
+        let u = self.unfinished.take()?;
+        let live = self.previous.take()?;
+        let clock = std::time::Instant::now();
+        let noise = self.depth_noise(u.depth_source);
+        let w = self.weights(&noise);
+        let photo = match (self.params.rgb_reference, &u.before) {
+            (RgbReference::PreviousFrame, Some(p)) => p,
+            _ => &u.reference,
+        };
+        let relighter = self.light.as_ref().map(Relighter::new);
+        let light = relighter.as_ref().zip(u.albedo.as_ref()).map(|(r, a)| (r, &a[0]));
+        let inputs = gn::Inputs { live: &live[0], reference: &u.reference[0], photo: &photo[0], light, stride: self.params.stride_l0 as usize };
+        let mut run = u.run;
+        self.iterate(&inputs, 0, &w, &mut run, self.params.iterations_l0);
+        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs, &run.t, &w));
+        ctx.count("ms_gauss_newton_fine", clock.elapsed().as_secs_f64() * 1e3);
+        let Unfinished { before, velocity, prior, t_world_prev, .. } = *u;
+        let result = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, &t_world_prev, ctx).0;
+        if result.status == TrackStatus::Lost {
+            // As if the registration had run uninterrupted: a lost frame leaves the previous
+            // frame and the velocity as they were.
+            self.previous = before;
+            self.velocity = velocity;
+        }
+        Some(result)
+    }
+
+    /// Drops a registration stopped after the coarse levels: the caller's own level-0 pose
+    /// stands.
+    pub(crate) fn drop_unfinished(&mut self) {
+        self.unfinished = None;
+    }
+
+    #[allow(clippy::too_many_arguments, reason = "the registration's inputs, passed through from two entry points")]
+    fn register_levels(
+        &mut self,
+        live: Vec<Level>,
+        depth_source: DepthSource,
+        model: Option<&ModelView>,
+        t_world_prev: &Iso3,
+        initial: bool,
+        stop: Stop,
+        ctx: &mut Context,
+    ) -> Result<(TrackResult, Option<f64>), StageError> {
+        self.unfinished = None;
+        let cam = ctx.rig.camera();
+        let prep = self.params.depth_prep();
+        let prior = match self.params.motion_model {
+            MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
+            MotionModel::None => Iso3::identity(),
+        };
+        let model = if self.params.mode == Mode::FrameToModel { model } else { None };
+        let clock = std::time::Instant::now();
+        let reference = frames::reference(model, self.previous.as_ref().and_then(|p| p.first()), cam, LEVELS, &prep);
+        ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
+        let clock = std::time::Instant::now();
+        let Some(reference) = reference else {
+            return Ok((self.without_reference(live, t_world_prev * prior, ctx), None));
+        };
+        let photo = match (self.params.rgb_reference, &self.previous) {
+            (RgbReference::PreviousFrame, Some(p)) => p,
+            _ => &reference,
+        };
+        let noise = self.depth_noise(depth_source);
+        let w = self.weights(&noise);
+        // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
+        let relighter = self.light.as_ref().map(Relighter::new);
+        let albedo: Option<Vec<GrayF32>> = relighter.as_ref().map(|r| live.iter().map(|lv| r.live_albedo(lv)).collect());
+        let stride_l0 = self.params.stride_l0 as usize;
+        let inputs = |level: usize| gn::Inputs {
+            live: &live[level],
+            reference: &reference[level],
+            photo: &photo[level],
+            light: relighter.as_ref().zip(albedo.as_ref()).map(|(r, a)| (r, &a[level])),
+            stride: if level == 0 { stride_l0 } else { 1 },
+        };
+        let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
+        // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
+        let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
+        let limits = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
+        for level in (1..LEVELS).rev() {
+            (run.on_level, run.level_ended) = (0, false);
+            self.iterate(&inputs(level), level, &w, &mut run, limits[level]);
+        }
+        (run.on_level, run.level_ended) = (0, false);
+        if stop == Stop::Coarse {
+            self.iterate(&inputs(0), 0, &w, &mut run, limits[0].min(1));
+            let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+            if self.lost_why(&fin, &noise, &prior, &run.t).is_none() {
+                ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
+                let velocity = self.velocity;
+                let (result, before) = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx);
+                let t_world_prev = *t_world_prev;
+                self.unfinished = Some(Box::new(Unfinished { reference, before, velocity, albedo, prior, run, t_world_prev, depth_source }));
+                return Ok((result, initial));
+            }
+        }
+        self.iterate(&inputs(0), 0, &w, &mut run, limits[0]);
+        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+        ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
+        Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial))
+    }
+
+    /// Gauss-Newton iterations on one level from `run.t` until `upto` have run on it
+    /// (`iterations_l0/1/2` at most) or the level ends: the step falls below `convergence`, or
+    /// the system has none. A level-0 system is kept in `run.fin` (the last one accumulated).
+    fn iterate(&self, inputs: &gn::Inputs<'_>, level: usize, w: &Weights, run: &mut Run, upto: u32) {
+        while !run.level_ended && run.on_level < upto {
+            run.on_level += 1;
+            let sys = accumulate(inputs, &run.t, w);
+            if level == 0 {
+                run.fin = Some(sys);
+            }
+            let Some(delta) = sys.step().filter(|d| d.iter().all(|v| v.is_finite())) else {
+                run.level_ended = true;
+                break;
+            };
+            run.t = capsule_slam_framework::geometry::renormalised(capsule_slam_framework::geometry::exp_se3(&delta) * run.t);
+            run.iterations += 1;
+            run.level_ended = delta.norm() < self.params.convergence;
+        }
+    }
+
+    /// The verdict on the pose `t` (previous camera → live) whose level-0 system is `fin`: the
+    /// counters, and on success the velocity and the previous frame set (the previous frame
+    /// before it returned). The result is the frame's.
+    fn conclude(
+        &mut self,
+        live: Vec<Level>,
+        (t, total_iters, fin): (Iso3, u32, gn::System),
+        prior: &Iso3,
+        noise: &DepthNoise,
+        t_world_prev: &Iso3,
+        ctx: &mut Context,
+    ) -> (TrackResult, Option<Vec<Level>>) {
+        let covariance = fin.a.full().try_inverse();
+        let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
+        let why = self.lost_why(&fin, noise, prior, &t);
+        ctx.count("pose_sigma_mm", pose_sigma_m(&fin) * 1e3);
+        ctx.count("icp_rms_sigmas", fin.icp_rms_sigmas());
+        ctx.count("icp_inliers", fin.icp_n as f64);
+        ctx.count("rgb_pixels", fin.rgb_n as f64);
+        ctx.count("inlier_share", inlier_share);
+        ctx.count("iterations", f64::from(total_iters));
+        let (status, before) = match why {
+            Some(why) => {
+                ctx.warn(format!("tracking lost: {why}"));
+                (TrackStatus::Lost, None)
+            }
+            None => {
+                self.velocity = Some(t);
+                (TrackStatus::Tracked, self.previous.replace(live))
+            }
+        };
+        let result = TrackResult {
+            t_world_cam: t_world_prev * t,
+            status,
+            inliers: fin.icp_n,
+            residual_rms: fin.icp_rms(),
+            covariance,
+            iterations: total_iters as usize,
+            warp: None,
+        };
+        (result, before)
+    }
+
+    /// Why the pose `t` reached from `prior`, whose level-0 system is `fin`, is lost, if it is:
+    /// too few inliers, a residual far above what the noise explains (in units of each
+    /// residual's σ, times the floor: exactly the RMS in metres when the frame carries no σ), a
+    /// jump from the prior, or a pose the data do not constrain.
+    fn lost_why(&self, fin: &gn::System, noise: &DepthNoise, prior: &Iso3, t: &Iso3) -> Option<String> {
+        let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
+        let jump = (prior.inverse() * t).translation.vector.norm();
+        let pose_sigma_m = pose_sigma_m(fin);
+        let residual_m = fin.icp_rms_sigmas() * noise.sigma_icp_m;
+        if inlier_share < noise.min_inlier_fraction {
+            Some(format!("{:.0} % of the live pixels are ICP inliers (min_inlier_fraction {:.0} %)", 100.0 * inlier_share, 100.0 * noise.min_inlier_fraction))
+        } else if residual_m.is_nan() || residual_m > noise.max_residual_m {
+            Some(format!(
+                "ICP residual {:.2} σ (max_residual_m / sigma_icp_m = {:.2} σ; RMS {:.3} mm)",
+                fin.icp_rms_sigmas(),
+                noise.max_residual_m / noise.sigma_icp_m,
+                fin.icp_rms() * 1e3
+            ))
+        } else if jump > self.params.max_jump_m {
+            Some(format!("the pose jumps {:.2} mm from the prior (max_jump_m {:.2} mm)", jump * 1e3, self.params.max_jump_m * 1e3))
+        } else if pose_sigma_m.is_nan() || pose_sigma_m > self.params.max_pose_sigma_m {
+            Some(format!(
+                "the pose is not constrained: σ {:.2} mm along its worst direction (max_pose_sigma_m {:.2} mm)",
+                pose_sigma_m * 1e3,
+                self.params.max_pose_sigma_m * 1e3
+            ))
+        } else {
+            None
+        }
+    }
+}
+
+/// The standard deviation of the camera's translation along its worst direction, from the
+/// Gauss-Newton information of `fin` (infinite where it is singular).
+fn pose_sigma_m(fin: &gn::System) -> f64 {
+    fin.a.full().try_inverse().map_or(f64::INFINITY, |c| c.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt())
+}
