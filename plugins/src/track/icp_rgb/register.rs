@@ -2,11 +2,11 @@
 //! 3-level pyramid), and the loss verdict on the result.
 //!
 //! A caller that refines the pose at level 0 itself (the `nonrigid` tracker's joint solve on a
-//! clearly moving wall) may stop the registration after the coarse levels and level 0's first
-//! iteration, whose system the loss verdict needs anyway ([`IcpRgb::register_pyramid_coarse`]),
-//! and, where its own refinement does not stand, finish level 0 later
-//! ([`IcpRgb::finish_fine`]). The stopped registration keeps everything level 0 needs, so the
-//! finished result is the uninterrupted registration's to the bit.
+//! clearly moving wall) may stop the registration after the coarsest level (or the two coarse
+//! levels) and level 0's first iteration, whose system the loss verdict needs anyway
+//! ([`IcpRgb::register_pyramid_coarse`]), and, where its own refinement does not stand, finish
+//! the registration later ([`IcpRgb::finish_fine`]). The stopped registration keeps everything
+//! the rest needs, so the finished result is the uninterrupted registration's to the bit.
 
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, StageError, TrackResult, TrackStatus};
@@ -31,6 +31,9 @@ pub(crate) struct Unfinished {
     prior: Iso3,
     /// Where the registration stopped.
     run: Run,
+    /// The level `run` continues at: 0 after level 0's first iteration; 1 when the coarse start
+    /// skipped level 1 (`run` then holds the pose after level 2, and level 0 starts afresh).
+    resume_level: usize,
     /// The previous camera's pose.
     t_world_prev: Iso3,
     /// The frame's depth source.
@@ -42,9 +45,9 @@ pub(crate) struct Unfinished {
 enum Stop {
     /// At level 0, converged.
     Fine,
-    /// After the coarse levels and level 0's first iteration, unless the pose there would be
-    /// declared lost.
-    Coarse,
+    /// After the levels from the coarsest down to `lowest` (2 or 1) and level 0's first
+    /// iteration, unless the pose there would be declared lost.
+    Coarse { lowest: usize },
 }
 
 /// The pose reached so far, the iterations run, and on the current level how many ran and
@@ -72,26 +75,29 @@ impl IcpRgb {
         self.register_levels(live, depth_source, model, t_world_prev, initial, Stop::Fine, ctx)
     }
 
-    /// [`IcpRgb::register_pyramid`] stopped after the coarse levels (levels 2 and 1) and level
-    /// 0's first iteration: the pose there, judged on that iteration's system as a finished
-    /// registration is on its last. A pose that would be lost there is finished at level 0 at
-    /// once (a lost frame is judged at its converged pose, as always). Otherwise the frame is
-    /// this tracker's previous frame already, and [`IcpRgb::finish_fine`] can run the rest of
-    /// level 0 until the next registration.
+    /// [`IcpRgb::register_pyramid`] stopped after the levels from the coarsest down to
+    /// `lowest_level` (2: level 2 alone; 1: levels 2 and 1) and level 0's first iteration: the
+    /// pose there, judged on that iteration's system as a finished registration is on its
+    /// last. A pose that would be lost there is finished at once (a lost frame is judged at its
+    /// converged pose, as always). Otherwise the frame is this tracker's previous frame already,
+    /// and [`IcpRgb::finish_fine`] can run the rest until the next registration.
     pub(crate) fn register_pyramid_coarse(
         &mut self,
         live: Vec<Level>,
         depth_source: DepthSource,
         model: Option<&ModelView>,
         t_world_prev: &Iso3,
+        lowest_level: usize,
         ctx: &mut Context,
     ) -> Result<TrackResult, StageError> {
-        Ok(self.register_levels(live, depth_source, model, t_world_prev, false, Stop::Coarse, ctx)?.0)
+        let stop = Stop::Coarse { lowest: lowest_level.clamp(1, LEVELS - 1) };
+        Ok(self.register_levels(live, depth_source, model, t_world_prev, false, stop, ctx)?.0)
     }
 
-    /// Runs level 0 of the registration [`IcpRgb::register_pyramid_coarse`] stopped short of:
-    /// the result [`IcpRgb::register_pyramid`] would have given, to the bit. `None` when there
-    /// is none to finish (the last registration was not stopped, or was lost).
+    /// Runs the rest of the registration [`IcpRgb::register_pyramid_coarse`] stopped short of
+    /// (a skipped level 1, level 0): the result [`IcpRgb::register_pyramid`] would have given,
+    /// to the bit. `None` when there is none to finish (the last registration was not stopped,
+    /// or was lost).
     pub(crate) fn finish_fine(&mut self, ctx: &mut Context) -> Option<TrackResult> {
         let u = self.unfinished.take()?;
         let live = self.previous.take()?;
@@ -103,11 +109,22 @@ impl IcpRgb {
             _ => &u.reference,
         };
         let relighter = self.light.as_ref().map(Relighter::new);
-        let light = relighter.as_ref().zip(u.albedo.as_ref()).map(|(r, a)| (r, &a[0]));
-        let inputs = gn::Inputs { live: &live[0], reference: &u.reference[0], photo: &photo[0], light, stride: self.params.stride_l0 as usize };
+        let stride_l0 = self.params.stride_l0 as usize;
+        let inputs = |level: usize| gn::Inputs {
+            live: &live[level],
+            reference: &u.reference[level],
+            photo: &photo[level],
+            light: relighter.as_ref().zip(u.albedo.as_ref()).map(|(r, a)| (r, &a[level])),
+            stride: if level == 0 { stride_l0 } else { 1 },
+        };
         let mut run = u.run;
-        self.iterate(&inputs, 0, &w, &mut run, self.params.iterations_l0);
-        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs, &run.t, &w));
+        for level in (0..=u.resume_level).rev() {
+            if level > 0 || u.resume_level > 0 {
+                (run.on_level, run.level_ended) = (0, false);
+            }
+            self.iterate(&inputs(level), level, &w, &mut run, self.limits()[level]);
+        }
+        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
         ctx.count("ms_gauss_newton_fine", clock.elapsed().as_secs_f64() * 1e3);
         let Unfinished { before, velocity, prior, t_world_prev, .. } = *u;
         let result = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, &t_world_prev, ctx).0;
@@ -172,28 +189,52 @@ impl IcpRgb {
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
         let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
-        let limits = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
-        for level in (1..LEVELS).rev() {
+        let limits = self.limits();
+        let lowest = match stop {
+            Stop::Fine => 1,
+            Stop::Coarse { lowest } => lowest,
+        };
+        for level in (lowest..LEVELS).rev() {
             (run.on_level, run.level_ended) = (0, false);
             self.iterate(&inputs(level), level, &w, &mut run, limits[level]);
         }
-        (run.on_level, run.level_ended) = (0, false);
-        if stop == Stop::Coarse {
+        if let Stop::Coarse { lowest } = stop {
+            // Level 0's first iteration from here; the levels skipped resume from `coarse`.
+            let coarse = run;
+            (run.on_level, run.level_ended) = (0, false);
             self.iterate(&inputs(0), 0, &w, &mut run, limits[0].min(1));
             let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+            let (resume, resume_level) = if lowest > 1 { (coarse, lowest - 1) } else { (run, 0) };
             if self.lost_why(&fin, &noise, &prior, &run.t).is_none() {
                 ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
                 let velocity = self.velocity;
                 let (result, before) = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx);
                 let t_world_prev = *t_world_prev;
-                self.unfinished = Some(Box::new(Unfinished { reference, before, velocity, albedo, prior, run, t_world_prev, depth_source }));
+                self.unfinished =
+                    Some(Box::new(Unfinished { reference, before, velocity, albedo, prior, run: resume, resume_level, t_world_prev, depth_source }));
                 return Ok((result, initial));
             }
+            // Lost there: finished now, as the uninterrupted registration.
+            run = resume;
+            for level in (1..=resume_level).rev() {
+                (run.on_level, run.level_ended) = (0, false);
+                self.iterate(&inputs(level), level, &w, &mut run, limits[level]);
+            }
+            if resume_level > 0 {
+                (run.on_level, run.level_ended) = (0, false);
+            }
+        } else {
+            (run.on_level, run.level_ended) = (0, false);
         }
         self.iterate(&inputs(0), 0, &w, &mut run, limits[0]);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial))
+    }
+
+    /// The iterations per level at most (`iterations_l0/1/2`).
+    fn limits(&self) -> [u32; LEVELS] {
+        [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2]
     }
 
     /// Gauss-Newton iterations on one level from `run.t` until `upto` have run on it

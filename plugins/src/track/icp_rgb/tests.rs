@@ -379,18 +379,19 @@ fn the_margin_around_highlights_takes_their_tails_out_of_the_photometric_term() 
     assert!(rot < 0.75 * rot0 && tr < 0.75 * tr0, "bias {rot:.4}° / {tr:.4} mm with the margin against {rot0:.4}° / {tr0:.4} mm without");
 }
 
-/// Stopped after the coarse levels and finished at level 0, a registration is the uninterrupted
-/// one to the bit: pose, status, statistics, and the state the next frame starts from (the
-/// velocity, the previous frame). A frame lost at the coarse pose is finished at once; nothing
-/// is left to finish after it, nor after a frame with nothing to track against.
+/// Stopped after the coarse levels (level 2 alone, or levels 2 and 1) and level 0's first
+/// iteration, then finished, a registration is the uninterrupted one to the bit: pose, status,
+/// statistics, and the state the next frame starts from (the velocity, the previous frame). A
+/// frame lost at the coarse pose is finished at once; nothing is left to finish after it, nor
+/// after a frame with nothing to track against.
 #[test]
 fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
     let ph = phantom(1, 300, 0.0);
     let rig = rig(&ph);
     let mut frames: Vec<_> = [40, 42, 44, 46, 48].iter().map(|&i| rgbd(&ph, i)).collect();
     // Frame 3 is noise: lost.
-    let mut state = 777u64;
     let noise = &mut frames[3];
+    let mut state = 777u64;
     for (d, c) in noise.depth_m.data_mut().iter_mut().zip(noise.colour.data_mut().chunks_mut(3)) {
         state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         let u = (state >> 33) as f32 / (1u64 << 31) as f32;
@@ -398,34 +399,37 @@ fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
         c.copy_from_slice(&[(u * 255.0) as u8; 3]);
     }
     let t0 = frames[0].gt_t_world_cam.unwrap();
-    let (mut full, mut split) = (tracker(IcpRgbParams::default(), &ph), tracker(IcpRgbParams::default(), &ph));
-    let mut r = StageReport::default();
-    let (mut at_full, mut at_split) = (t0, t0);
-    let mut finished = 0;
-    for (k, f) in frames.iter().enumerate() {
-        let mut ctx = Context::new(k, &rig, None, &mut r);
-        let live = full.live_pyramid(f, &mut ctx);
-        let a = full.register_pyramid(live, f.depth_source, None, &at_full, false, &mut ctx).unwrap().0;
-        let live = split.live_pyramid(f, &mut ctx);
-        let coarse = split.register_pyramid_coarse(live, f.depth_source, None, &at_split, &mut ctx).unwrap();
-        let b = match split.finish_fine(&mut ctx) {
-            Some(fine) => {
-                assert_ne!(coarse.t_world_cam, fine.t_world_cam, "frame {k}: level 0 moved the coarse pose");
-                assert!(split.finish_fine(&mut ctx).is_none(), "frame {k}: finished once");
-                finished += 1;
-                fine
+    for lowest in [1, 2] {
+        let (mut full, mut split) = (tracker(IcpRgbParams::default(), &ph), tracker(IcpRgbParams::default(), &ph));
+        let mut r = StageReport::default();
+        let (mut at_full, mut at_split) = (t0, t0);
+        let mut finished = 0;
+        for (k, f) in frames.iter().enumerate() {
+            let mut ctx = Context::new(k, &rig, None, &mut r);
+            let live = full.live_pyramid(f, &mut ctx);
+            let a = full.register_pyramid(live, f.depth_source, None, &at_full, false, &mut ctx).unwrap().0;
+            let live = split.live_pyramid(f, &mut ctx);
+            let coarse = split.register_pyramid_coarse(live, f.depth_source, None, &at_split, lowest, &mut ctx).unwrap();
+            let b = match split.finish_fine(&mut ctx) {
+                Some(fine) => {
+                    assert_ne!(coarse.t_world_cam, fine.t_world_cam, "levels to {lowest}, frame {k}: finishing moved the coarse pose");
+                    assert!(split.finish_fine(&mut ctx).is_none(), "levels to {lowest}, frame {k}: finished once");
+                    finished += 1;
+                    fine
+                }
+                None => coarse,
+            };
+            let at = format!("levels to {lowest}, frame {k}");
+            assert_eq!(a.t_world_cam, b.t_world_cam, "{at}");
+            assert_eq!((a.status, a.inliers, a.iterations), (b.status, b.inliers, b.iterations), "{at}");
+            assert_eq!(a.residual_rms.to_bits(), b.residual_rms.to_bits(), "{at}");
+            assert_eq!(a.covariance, b.covariance, "{at}");
+            assert_eq!(full.velocity, split.velocity, "{at}");
+            assert_eq!(a.status, if k == 3 { TrackStatus::Lost } else { TrackStatus::Tracked }, "{at}");
+            if a.status == TrackStatus::Tracked {
+                (at_full, at_split) = (a.t_world_cam, b.t_world_cam);
             }
-            None => coarse,
-        };
-        assert_eq!(a.t_world_cam, b.t_world_cam, "frame {k}");
-        assert_eq!((a.status, a.inliers, a.iterations), (b.status, b.inliers, b.iterations), "frame {k}");
-        assert_eq!(a.residual_rms.to_bits(), b.residual_rms.to_bits(), "frame {k}");
-        assert_eq!(a.covariance, b.covariance, "frame {k}");
-        assert_eq!(full.velocity, split.velocity, "frame {k}");
-        assert_eq!(a.status, if k == 3 { TrackStatus::Lost } else { TrackStatus::Tracked }, "frame {k}");
-        if a.status == TrackStatus::Tracked {
-            (at_full, at_split) = (a.t_world_cam, b.t_world_cam);
         }
+        assert_eq!(finished, 3, "levels to {lowest}: frames 1, 2 and 4; frame 0 had nothing to track against, frame 3 was lost");
     }
-    assert_eq!(finished, 3, "frames 1, 2 and 4; frame 0 had nothing to track against, frame 3 was lost");
 }

@@ -160,7 +160,7 @@ impl Tracker for Nonrigid {
         let coarse = warps && p.camera == CameraMode::Joint && self.moving.shortens(p.gain_window_frames, p.moving_probe_every_frames);
         let rigid = if coarse {
             ctx.count("nonrigid_coarse_start", 1.0);
-            self.rigid.register_pyramid_coarse(live, frame.depth_source, model, t_world_prev, ctx)?
+            self.rigid.register_pyramid_coarse(live, frame.depth_source, model, t_world_prev, p.coarse_start_level as usize, ctx)?
         } else {
             self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?.0
         };
@@ -187,6 +187,9 @@ impl Tracker for Nonrigid {
             if matches!(outcome, Ok(Some(_))) {
                 self.rigid.drop_unfinished();
             } else {
+                if let Err(e) = &outcome {
+                    ctx.warn(format!("the joint solve from the coarse rigid start failed ({e}): the rigid start is finished and the frame solved again"));
+                }
                 // The solve did not stand on the coarse start: finish the rigid start at level 0
                 // and solve as on any other frame (the model points stay relit to the coarse pose).
                 ctx.count("nonrigid_coarse_start_finished", 1.0);
@@ -261,7 +264,10 @@ impl Nonrigid {
             self.moving.judged(kept.is_finite(), kept, 2.0 * self.params.min_rms_gain);
         }
         match fit {
-            Fit::Fallback(_) if !judge => Ok(None),
+            Fit::Fallback(why) if !judge => {
+                ctx.warn(format!("the joint solve from the coarse rigid start fell back ({why}): the rigid start is finished and the frame solved again"));
+                Ok(None)
+            }
             Fit::Fallback(why) => {
                 self.probe = Probe::default();
                 ctx.warn(format!("rigid pose kept, no warp: {why}"));

@@ -202,6 +202,12 @@ capsule_slam_framework::plugin_params! {
         /// would hold the camera at the coarse pose, finishes the rigid start at level 0 and is
         /// solved again as any other frame (counter `nonrigid_coarse_start_finished`). 1: never.
         pub moving_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
+        /// The coarse rigid start runs the pyramid levels from the coarsest down to this one,
+        /// then level 0's first iteration: 2, level 2 alone (a sixteenth of the pixels); 1, levels
+        /// 2 and 1. Over the 30 deforming phantom runs the two are alike within a null change's
+        /// spread, and level 2 alone saves about 4 ms more per coarse frame
+        /// (`docs/results/nonrigid.md`, "A coarse rigid start on a clearly moving wall").
+        pub coarse_start_level: u32 = 2; unit = "-"; range = 1.0..=2.0;
         /// Most nodes (SurfelWarp: 4096).
         pub max_nodes: u32 = 4096; unit = "-"; range = 1.0..=1.0e6;
         /// Warp also with depth estimated from the image (shape from shading): its view-dependent
