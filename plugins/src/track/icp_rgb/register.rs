@@ -118,12 +118,7 @@ impl IcpRgb {
             stride: if level == 0 { stride_l0 } else { 1 },
         };
         let mut run = u.run;
-        for level in (0..=u.resume_level).rev() {
-            if level > 0 || u.resume_level > 0 {
-                (run.on_level, run.level_ended) = (0, false);
-            }
-            self.iterate(&inputs(level), level, &w, &mut run, self.limits()[level]);
-        }
+        self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
         ctx.count("ms_gauss_newton_fine", clock.elapsed().as_secs_f64() * 1e3);
         let Unfinished { before, velocity, prior, t_world_prev, .. } = *u;
@@ -189,20 +184,12 @@ impl IcpRgb {
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
         let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
-        let limits = self.limits();
-        let lowest = match stop {
-            Stop::Fine => 1,
-            Stop::Coarse { lowest } => lowest,
-        };
-        for level in (lowest..LEVELS).rev() {
-            (run.on_level, run.level_ended) = (0, false);
-            self.iterate(&inputs(level), level, &w, &mut run, limits[level]);
-        }
         if let Stop::Coarse { lowest } = stop {
+            self.descend(&inputs, (LEVELS - 1, lowest), false, &w, &mut run);
             // Level 0's first iteration from here; the levels skipped resume from `coarse`.
             let coarse = run;
             (run.on_level, run.level_ended) = (0, false);
-            self.iterate(&inputs(0), 0, &w, &mut run, limits[0].min(1));
+            self.iterate(&inputs(0), 0, &w, &mut run, self.params.iterations_l0.min(1));
             let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
             let (resume, resume_level) = if lowest > 1 { (coarse, lowest - 1) } else { (run, 0) };
             if self.lost_why(&fin, &noise, &prior, &run.t).is_none() {
@@ -216,25 +203,25 @@ impl IcpRgb {
             }
             // Lost there: finished now, as the uninterrupted registration.
             run = resume;
-            for level in (1..=resume_level).rev() {
-                (run.on_level, run.level_ended) = (0, false);
-                self.iterate(&inputs(level), level, &w, &mut run, limits[level]);
-            }
-            if resume_level > 0 {
-                (run.on_level, run.level_ended) = (0, false);
-            }
+            self.descend(&inputs, (resume_level, 0), resume_level == 0, &w, &mut run);
         } else {
-            (run.on_level, run.level_ended) = (0, false);
+            self.descend(&inputs, (LEVELS - 1, 0), false, &w, &mut run);
         }
-        self.iterate(&inputs(0), 0, &w, &mut run, limits[0]);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial))
     }
 
-    /// The iterations per level at most (`iterations_l0/1/2`).
-    fn limits(&self) -> [u32; LEVELS] {
-        [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2]
+    /// Runs the levels from `from` down to `to`, each from its first iteration, except that with
+    /// `resume` the first continues where `run` stopped on it.
+    fn descend<'a>(&self, inputs: &dyn Fn(usize) -> gn::Inputs<'a>, (from, to): (usize, usize), resume: bool, w: &Weights, run: &mut Run) {
+        let limits = [self.params.iterations_l0, self.params.iterations_l1, self.params.iterations_l2];
+        for level in (to..=from).rev() {
+            if !(resume && level == from) {
+                (run.on_level, run.level_ended) = (0, false);
+            }
+            self.iterate(&inputs(level), level, w, run, limits[level]);
+        }
     }
 
     /// Gauss-Newton iterations on one level from `run.t` until `upto` have run on it
