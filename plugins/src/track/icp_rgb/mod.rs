@@ -27,7 +27,7 @@
 
 pub(crate) mod frames;
 mod gn;
-mod register;
+pub(crate) mod register;
 mod relight;
 mod start;
 mod terms;
@@ -287,7 +287,7 @@ impl IcpRgb {
         ctx: &mut Context,
     ) -> Result<(TrackResult, Option<f64>), StageError> {
         let live = self.live_pyramid(frame, ctx);
-        self.register_pyramid(live, frame.depth_source, model, t_world_prev, initial, ctx)
+        self.register_pyramid(live, frame.depth_source, model, t_world_prev, initial, register::Stop::Fine, ctx)
     }
 
     /// The live frame's pyramid as this tracker prepares it (3 levels, finest first).

@@ -4,9 +4,10 @@
 //! A caller that refines the pose at level 0 itself (the `nonrigid` tracker's joint solve on a
 //! clearly moving wall) may stop the registration after the coarsest level (or the two coarse
 //! levels) and level 0's first iteration, whose system the loss verdict needs anyway
-//! ([`IcpRgb::register_pyramid_coarse`]), and, where its own refinement does not stand, finish
-//! the registration later ([`IcpRgb::finish_fine`]). The stopped registration keeps everything
-//! the rest needs, so the finished result is the uninterrupted registration's to the bit.
+//! ([`IcpRgb::register_pyramid`] to [`Stop::Coarse`]), and, where its own refinement does not
+//! stand, finish the registration later ([`IcpRgb::finish_fine`]). The stopped registration
+//! keeps everything the rest needs, so the finished result is the uninterrupted
+//! registration's to the bit.
 
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, StageError, TrackResult, TrackStatus};
@@ -42,7 +43,7 @@ pub(crate) struct Unfinished {
 
 /// Where a registration stops.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Stop {
+pub(crate) enum Stop {
     /// At level 0, converged.
     Fine,
     /// After the levels from the coarsest down to `lowest` (2 or 1) and level 0's first
@@ -62,84 +63,14 @@ struct Run {
 }
 
 impl IcpRgb {
-    /// [`IcpRgb::register`] on a prepared live pyramid ([`IcpRgb::live_pyramid`]).
-    pub(crate) fn register_pyramid(
-        &mut self,
-        live: Vec<Level>,
-        depth_source: DepthSource,
-        model: Option<&ModelView>,
-        t_world_prev: &Iso3,
-        initial: bool,
-        ctx: &mut Context,
-    ) -> Result<(TrackResult, Option<f64>), StageError> {
-        self.register_levels(live, depth_source, model, t_world_prev, initial, Stop::Fine, ctx)
-    }
-
-    /// [`IcpRgb::register_pyramid`] stopped after the levels from the coarsest down to
-    /// `lowest_level` (2: level 2 alone; 1: levels 2 and 1) and level 0's first iteration: the
-    /// pose there, judged on that iteration's system as a finished registration is on its
-    /// last. A pose that would be lost there is finished at once (a lost frame is judged at its
+    /// [`IcpRgb::register`] on a prepared live pyramid ([`IcpRgb::live_pyramid`]), run to
+    /// `stop`. Stopped after the coarse levels ([`Stop::Coarse`]), the result is the pose there,
+    /// judged on level 0's first iteration's system as a finished registration is on its last.
+    /// A pose that would be lost there is finished at once (a lost frame is judged at its
     /// converged pose, as always). Otherwise the frame is this tracker's previous frame already,
     /// and [`IcpRgb::finish_fine`] can run the rest until the next registration.
-    pub(crate) fn register_pyramid_coarse(
-        &mut self,
-        live: Vec<Level>,
-        depth_source: DepthSource,
-        model: Option<&ModelView>,
-        t_world_prev: &Iso3,
-        lowest_level: usize,
-        ctx: &mut Context,
-    ) -> Result<TrackResult, StageError> {
-        let stop = Stop::Coarse { lowest: lowest_level.clamp(1, LEVELS - 1) };
-        Ok(self.register_levels(live, depth_source, model, t_world_prev, false, stop, ctx)?.0)
-    }
-
-    /// Runs the rest of the registration [`IcpRgb::register_pyramid_coarse`] stopped short of
-    /// (a skipped level 1, level 0): the result [`IcpRgb::register_pyramid`] would have given,
-    /// to the bit. `None` when there is none to finish (the last registration was not stopped,
-    /// or was lost).
-    pub(crate) fn finish_fine(&mut self, ctx: &mut Context) -> Option<TrackResult> {
-        let u = self.unfinished.take()?;
-        let live = self.previous.take()?;
-        let clock = std::time::Instant::now();
-        let noise = self.depth_noise(u.depth_source);
-        let w = self.weights(&noise);
-        let photo = match (self.params.rgb_reference, &u.before) {
-            (RgbReference::PreviousFrame, Some(p)) => p,
-            _ => &u.reference,
-        };
-        let relighter = self.light.as_ref().map(Relighter::new);
-        let stride_l0 = self.params.stride_l0 as usize;
-        let inputs = |level: usize| gn::Inputs {
-            live: &live[level],
-            reference: &u.reference[level],
-            photo: &photo[level],
-            light: relighter.as_ref().zip(u.albedo.as_ref()).map(|(r, a)| (r, &a[level])),
-            stride: if level == 0 { stride_l0 } else { 1 },
-        };
-        let mut run = u.run;
-        self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
-        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
-        ctx.count("ms_gauss_newton_fine", clock.elapsed().as_secs_f64() * 1e3);
-        let Unfinished { before, velocity, prior, t_world_prev, .. } = *u;
-        let result = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, &t_world_prev, ctx).0;
-        if result.status == TrackStatus::Lost {
-            // As if the registration had run uninterrupted: a lost frame leaves the previous
-            // frame and the velocity as they were.
-            self.previous = before;
-            self.velocity = velocity;
-        }
-        Some(result)
-    }
-
-    /// Drops a registration stopped after the coarse levels: the caller's own level-0 pose
-    /// stands.
-    pub(crate) fn drop_unfinished(&mut self) {
-        self.unfinished = None;
-    }
-
-    #[allow(clippy::too_many_arguments, reason = "the registration's inputs, passed through from two entry points")]
-    fn register_levels(
+    #[allow(clippy::too_many_arguments, reason = "the registration's inputs and where it stops")]
+    pub(crate) fn register_pyramid(
         &mut self,
         live: Vec<Level>,
         depth_source: DepthSource,
@@ -149,6 +80,10 @@ impl IcpRgb {
         stop: Stop,
         ctx: &mut Context,
     ) -> Result<(TrackResult, Option<f64>), StageError> {
+        let stop = match stop {
+            Stop::Coarse { lowest } => Stop::Coarse { lowest: lowest.clamp(1, LEVELS - 1) },
+            fine => fine,
+        };
         self.unfinished = None;
         let cam = ctx.rig.camera();
         let prep = self.params.depth_prep();
@@ -210,6 +145,50 @@ impl IcpRgb {
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial))
+    }
+
+    /// Runs the rest of the registration [`IcpRgb::register_pyramid`] stopped short of
+    /// (a skipped level 1, level 0): the result it would have given run to [`Stop::Fine`],
+    /// to the bit. `None` when there is none to finish (the last registration was not stopped,
+    /// or was lost).
+    pub(crate) fn finish_fine(&mut self, ctx: &mut Context) -> Option<TrackResult> {
+        let u = self.unfinished.take()?;
+        let live = self.previous.take()?;
+        let clock = std::time::Instant::now();
+        let noise = self.depth_noise(u.depth_source);
+        let w = self.weights(&noise);
+        let photo = match (self.params.rgb_reference, &u.before) {
+            (RgbReference::PreviousFrame, Some(p)) => p,
+            _ => &u.reference,
+        };
+        let relighter = self.light.as_ref().map(Relighter::new);
+        let stride_l0 = self.params.stride_l0 as usize;
+        let inputs = |level: usize| gn::Inputs {
+            live: &live[level],
+            reference: &u.reference[level],
+            photo: &photo[level],
+            light: relighter.as_ref().zip(u.albedo.as_ref()).map(|(r, a)| (r, &a[level])),
+            stride: if level == 0 { stride_l0 } else { 1 },
+        };
+        let mut run = u.run;
+        self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
+        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+        ctx.count("ms_gauss_newton_fine", clock.elapsed().as_secs_f64() * 1e3);
+        let Unfinished { before, velocity, prior, t_world_prev, .. } = *u;
+        let result = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, &t_world_prev, ctx).0;
+        if result.status == TrackStatus::Lost {
+            // As if the registration had run uninterrupted: a lost frame leaves the previous
+            // frame and the velocity as they were.
+            self.previous = before;
+            self.velocity = velocity;
+        }
+        Some(result)
+    }
+
+    /// Drops a registration stopped after the coarse levels: the caller's own level-0 pose
+    /// stands.
+    pub(crate) fn drop_unfinished(&mut self) {
+        self.unfinished = None;
     }
 
     /// Runs the levels from `from` down to `to`, each from its first iteration, except that with

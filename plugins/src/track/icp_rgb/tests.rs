@@ -407,9 +407,9 @@ fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
         for (k, f) in frames.iter().enumerate() {
             let mut ctx = Context::new(k, &rig, None, &mut r);
             let live = full.live_pyramid(f, &mut ctx);
-            let a = full.register_pyramid(live, f.depth_source, None, &at_full, false, &mut ctx).unwrap().0;
+            let a = full.register_pyramid(live, f.depth_source, None, &at_full, false, super::register::Stop::Fine, &mut ctx).unwrap().0;
             let live = split.live_pyramid(f, &mut ctx);
-            let coarse = split.register_pyramid_coarse(live, f.depth_source, None, &at_split, lowest, &mut ctx).unwrap();
+            let coarse = split.register_pyramid(live, f.depth_source, None, &at_split, false, super::register::Stop::Coarse { lowest }, &mut ctx).unwrap().0;
             let b = match split.finish_fine(&mut ctx) {
                 Some(fine) => {
                     assert_ne!(coarse.t_world_cam, fine.t_world_cam, "levels to {lowest}, frame {k}: finishing moved the coarse pose");

@@ -6,7 +6,12 @@
 //! Per frame:
 //! 1. a rigid start: `icp-rgb` (every option of it, under `[plugins.nonrigid.rigid]`) against the
 //!    prediction of the map, which the previous frames' warps keep at the wall's last shape;
-//!    its loss detection is this tracker's;
+//!    its loss detection is this tracker's; while the wall clearly moves (a window of kept
+//!    warps), it runs the coarsest level and level 0's first iteration only, on all but every
+//!    `moving_probe_every_frames`-th frame (`coarse_start_level`), since the joint solve refines
+//!    the camera at level 0 itself; those frames keep their warp unjudged, and one whose solve
+//!    does not stand finishes the rigid start and is solved again (counter
+//!    `nonrigid_coarse_start_finished`);
 //! 2. embedded-deformation nodes cover the predicted surface (`node_spacing_m`, `nodes.rs`); the
 //!    prediction's pixels on a grid are bound to their k nearest nodes within `reach_m`;
 //! 3. a joint Gauss-Newton solve of the camera and the nodes' affine increments (`solve.rs`):
@@ -70,6 +75,7 @@ use capsule_slam_framework::{Context, Iso3, ModelView, Plugin, RgbdFrame, StageE
 use crate::common::ed_graph::{Edges, Graph};
 use crate::track::icp_rgb::IcpRgb;
 use crate::track::icp_rgb::frames::Level;
+use crate::track::icp_rgb::register::Stop;
 
 use nodes::Nodes;
 use points::ModelPoint;
@@ -160,9 +166,10 @@ impl Tracker for Nonrigid {
         let coarse = warps && p.camera == CameraMode::Joint && self.moving.shortens(p.gain_window_frames, p.moving_probe_every_frames);
         let rigid = if coarse {
             ctx.count("nonrigid_coarse_start", 1.0);
-            self.rigid.register_pyramid_coarse(live, frame.depth_source, model, t_world_prev, p.coarse_start_level as usize, ctx)?
+            let stop = Stop::Coarse { lowest: p.coarse_start_level as usize };
+            self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, stop, ctx)?.0
         } else {
-            self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, ctx)?.0
+            self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, Stop::Fine, ctx)?.0
         };
         if model.is_none() || !warps || rigid.status == TrackStatus::Lost {
             return Ok(rigid);
