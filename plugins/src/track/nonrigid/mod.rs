@@ -221,6 +221,8 @@ impl Tracker for Nonrigid {
             }
             Ok(None) => Ok(rigid.clone()),
             Err(e) => {
+                // A failed solve is no evidence of a moving wall.
+                self.moving = Moving::default();
                 ctx.warn(format!("rigid pose kept, no warp: {e}"));
                 ctx.count("nonrigid_fallback", 1.0);
                 Ok(rigid)
