@@ -99,23 +99,13 @@ impl IcpRgb {
         let Some(reference) = reference else {
             return Ok((self.without_reference(live, t_world_prev * prior, ctx), None));
         };
-        let photo = match (self.params.rgb_reference, &self.previous) {
-            (RgbReference::PreviousFrame, Some(p)) => p,
-            _ => &reference,
-        };
+        let photo = self.photometric_reference(self.previous.as_ref(), &reference);
         let noise = self.depth_noise(depth_source);
         let w = self.weights(&noise);
         // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
         let relighter = self.light.as_ref().map(Relighter::new);
         let albedo: Option<Vec<GrayF32>> = relighter.as_ref().map(|r| live.iter().map(|lv| r.live_albedo(lv)).collect());
-        let stride_l0 = self.params.stride_l0 as usize;
-        let inputs = |level: usize| gn::Inputs {
-            live: &live[level],
-            reference: &reference[level],
-            photo: &photo[level],
-            light: relighter.as_ref().zip(albedo.as_ref()).map(|(r, a)| (r, &a[level])),
-            stride: if level == 0 { stride_l0 } else { 1 },
-        };
+        let inputs = |level: usize| self.level_inputs([&live, &reference, photo], relighter.as_ref(), albedo.as_deref(), level);
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
         let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
@@ -157,19 +147,9 @@ impl IcpRgb {
         let clock = std::time::Instant::now();
         let noise = self.depth_noise(u.depth_source);
         let w = self.weights(&noise);
-        let photo = match (self.params.rgb_reference, &u.before) {
-            (RgbReference::PreviousFrame, Some(p)) => p,
-            _ => &u.reference,
-        };
+        let photo = self.photometric_reference(u.before.as_ref(), &u.reference);
         let relighter = self.light.as_ref().map(Relighter::new);
-        let stride_l0 = self.params.stride_l0 as usize;
-        let inputs = |level: usize| gn::Inputs {
-            live: &live[level],
-            reference: &u.reference[level],
-            photo: &photo[level],
-            light: relighter.as_ref().zip(u.albedo.as_ref()).map(|(r, a)| (r, &a[level])),
-            stride: if level == 0 { stride_l0 } else { 1 },
-        };
+        let inputs = |level: usize| self.level_inputs([&live, &u.reference, photo], relighter.as_ref(), u.albedo.as_deref(), level);
         let mut run = u.run;
         self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
@@ -189,6 +169,33 @@ impl IcpRgb {
     /// stands.
     pub(crate) fn drop_unfinished(&mut self) {
         self.unfinished = None;
+    }
+
+    /// What the photometric term compares with: the previous live frame's pyramid
+    /// (`rgb_reference = "previous-frame"`, where there is one), else the reference.
+    fn photometric_reference<'a>(&self, previous: Option<&'a Vec<Level>>, reference: &'a [Level]) -> &'a [Level] {
+        match (self.params.rgb_reference, previous) {
+            (RgbReference::PreviousFrame, Some(p)) => p,
+            _ => reference,
+        }
+    }
+
+    /// One level's Gauss-Newton inputs from the live, reference and photometric pyramids and
+    /// the relighting with the live albedo per level (every `stride_l0`-th pixel at level 0).
+    fn level_inputs<'a>(
+        &self,
+        [live, reference, photo]: [&'a [Level]; 3],
+        relighter: Option<&'a Relighter<'a>>,
+        albedo: Option<&'a [GrayF32]>,
+        level: usize,
+    ) -> gn::Inputs<'a> {
+        gn::Inputs {
+            live: &live[level],
+            reference: &reference[level],
+            photo: &photo[level],
+            light: relighter.zip(albedo).map(|(r, a)| (r, &a[level])),
+            stride: if level == 0 { self.params.stride_l0 as usize } else { 1 },
+        }
     }
 
     /// Runs the levels from `from` down to `to`, each from its first iteration, except that with
@@ -238,7 +245,7 @@ impl IcpRgb {
         let covariance = fin.a.full().try_inverse();
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
         let why = self.lost_why(&fin, noise, prior, &t);
-        ctx.count("pose_sigma_mm", pose_sigma_m(&fin) * 1e3);
+        ctx.count("pose_sigma_mm", pose_sigma_m(covariance.as_ref()) * 1e3);
         ctx.count("icp_rms_sigmas", fin.icp_rms_sigmas());
         ctx.count("icp_inliers", fin.icp_n as f64);
         ctx.count("rgb_pixels", fin.rgb_n as f64);
@@ -273,7 +280,7 @@ impl IcpRgb {
     fn lost_why(&self, fin: &gn::System, noise: &DepthNoise, prior: &Iso3, t: &Iso3) -> Option<String> {
         let inlier_share = if fin.live_n == 0 { 0.0 } else { fin.icp_n as f64 / fin.live_n as f64 };
         let jump = (prior.inverse() * t).translation.vector.norm();
-        let pose_sigma_m = pose_sigma_m(fin);
+        let pose_sigma_m = pose_sigma_m(fin.a.full().try_inverse().as_ref());
         let residual_m = fin.icp_rms_sigmas() * noise.sigma_icp_m;
         if inlier_share < noise.min_inlier_fraction {
             Some(format!("{:.0} % of the live pixels are ICP inliers (min_inlier_fraction {:.0} %)", 100.0 * inlier_share, 100.0 * noise.min_inlier_fraction))
@@ -299,7 +306,7 @@ impl IcpRgb {
 }
 
 /// The standard deviation of the camera's translation along its worst direction, from the
-/// Gauss-Newton information of `fin` (infinite where it is singular).
-fn pose_sigma_m(fin: &gn::System) -> f64 {
-    fin.a.full().try_inverse().map_or(f64::INFINITY, |c| c.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt())
+/// pose covariance (the inverse Gauss-Newton information; infinite where it is singular).
+fn pose_sigma_m(covariance: Option<&nalgebra::Matrix6<f64>>) -> f64 {
+    covariance.map_or(f64::INFINITY, |c| c.fixed_view::<3, 3>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt())
 }
