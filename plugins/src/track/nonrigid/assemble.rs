@@ -37,12 +37,12 @@ pub(crate) struct Layout {
     parts: Vec<Accumulator>,
 }
 
-impl Problem<'_> {
+impl Problem {
     /// The normal-equation pattern of this problem and where every term lands in it.
-    pub(crate) fn layout(&self, w: &Weights) -> Result<Layout, StageError> {
+    pub(crate) fn layout(&self, points: &[ModelPoint], w: &Weights) -> Result<Layout, StageError> {
         let model = self.graph.model;
         let pattern = Pattern::new(self.graph.deformation.nodes.len(), &self.pairs(), self.camera, model);
-        let bound: Vec<BoundPoint> = self.points.par_iter().map(|(p, b)| self.bound_point(&pattern, p, b)).collect();
+        let bound: Vec<BoundPoint> = self.points.par_iter().map(|(i, b)| self.bound_point(&pattern, &points[*i], b)).collect();
         let mut reg_slots = Vec::new();
         self.graph.visit(&Self::graph_weights(w), |_, row| {
             for &(a, _) in row {
@@ -72,12 +72,23 @@ impl Problem<'_> {
         Ok(Layout { pattern, bound, reg_slots, diag, translation_slots, parts })
     }
 
-    /// Fills the layout's matrix with `JᵀWJ` at the current node transforms, camera `t` and
-    /// camera departure `xi`; returns `JᵀWr` and the residual statistics.
+    /// Fills the layout's matrix with `JᵀWJ` of the model `points` at the current node
+    /// transforms, camera `t` and camera departure `xi`; returns `JᵀWr` and the residual
+    /// statistics.
     /// With `matrix` false only `JᵀWr` is formed (the values of the matrix are left stale, to be
     /// overwritten by the next full linearisation).
-    pub(crate) fn linearise(&self, level: &Level, t: &Iso3, xi: &Vector6<f64>, w: &Weights, layout: &mut Layout, matrix: bool) -> (Vec<f64>, Stats) {
-        let stats = self.accumulate(level, t, w, &mut layout.parts, &layout.bound, matrix);
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn linearise(
+        &self,
+        points: &[ModelPoint],
+        level: &Level,
+        t: &Iso3,
+        xi: &Vector6<f64>,
+        w: &Weights,
+        layout: &mut Layout,
+        matrix: bool,
+    ) -> (Vec<f64>, Stats) {
+        let stats = self.accumulate(points, level, t, w, &mut layout.parts, &layout.bound, matrix);
         let mut g = if matrix { layout.pattern.scatter(&layout.parts) } else { layout.pattern.gradient(&layout.parts) };
         self.add_graph_rows(&Self::graph_weights(w), &mut layout.pattern, &layout.reg_slots, &mut g);
         self.add_priors(w, xi, &mut layout.pattern, &layout.diag, &mut g);
@@ -124,7 +135,8 @@ impl Problem<'_> {
 
     /// The data terms at pose `t` summed into `parts` (one accumulator per fixed chunk of
     /// points, `CHUNKS`, reset first); returns the residual statistics.
-    fn accumulate(&self, level: &Level, t: &Iso3, w: &Weights, parts: &mut [Accumulator], bound: &[BoundPoint], matrix: bool) -> Stats {
+    #[allow(clippy::too_many_arguments)]
+    fn accumulate(&self, model: &[ModelPoint], level: &Level, t: &Iso3, w: &Weights, parts: &mut [Accumulator], bound: &[BoundPoint], matrix: bool) -> Stats {
         let chunk = chunk_len(self.points.len());
         let sums: Vec<ChunkSums> = self
             .points
@@ -140,7 +152,8 @@ impl Problem<'_> {
                 let (mut n, mut sse) = ([0usize; 2], [0.0; 2]);
                 let mut icp_r2 = Vec::with_capacity(pts.len());
                 let mut factors = Vec::new();
-                for ((p, binding), b) in pts.iter().zip(bound) {
+                for ((i, binding), b) in pts.iter().zip(bound) {
+                    let p = &model[*i];
                     let mut sums = PointSums::default();
                     let r2 = self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q));
                     if sums.count > 0 {

@@ -59,6 +59,7 @@ mod nodes;
 mod params;
 pub(crate) mod points;
 mod priors;
+mod problem;
 mod solve;
 mod system;
 #[cfg(test)]
@@ -67,20 +68,22 @@ mod verdict;
 
 pub use params::{CameraMode, NonrigidParams};
 
-use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
+use capsule_slam_framework::deformation::{Deformation, DeformationNode};
 use capsule_slam_framework::frame::DepthSource;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Context, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, TrackStatus, Tracker, register};
 
-use crate::common::ed_graph::{Edges, Graph};
 use crate::track::icp_rgb::IcpRgb;
 use crate::track::icp_rgb::frames::Level;
 use crate::track::icp_rgb::register::Stop;
 
 use nodes::Nodes;
 use points::ModelPoint;
-use rayon::prelude::*;
-use solve::{Cache, Problem};
+use problem::{Built, Ready};
+use solve::Cache;
+#[cfg(test)]
+use solve::Problem;
+use std::ops::ControlFlow;
 pub(crate) use verdict::Fit;
 use verdict::{Gains, Moving, Probe, windowed_gain};
 
@@ -129,7 +132,6 @@ impl Nonrigid {
 
 impl Tracker for Nonrigid {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
-        let live = self.rigid.live_pyramid(frame, ctx);
         let warps = frame.depth_source == DepthSource::Measured || self.params.warp_estimated_depth;
         let warps = warps && model.is_some() && !self.probe.skips(self.params.still_probe_every_frames);
         if self.probe.skipped > 0 {
@@ -137,81 +139,53 @@ impl Tracker for Nonrigid {
         }
         // The model points read the previous frame's intensity, which registering replaces.
         let clock = std::time::Instant::now();
-        let (points, mostly_fill_in) = match (model, warps) {
-            (Some(m), true) => {
-                let previous = self.rigid.previous_level0();
-                let (stride, incidence) = (self.params.point_stride_px as usize, self.params.max_incidence_rad);
-                let mut points = points::sample(m, ctx.rig.camera(), previous.map(|l| &l.gray), stride, incidence);
-                let mut mostly_fill_in = false;
-                if let Some(previous) = previous
-                    && self.params.fill_in_below_share > 0.0
-                    && points::predicted_share(m, previous) < self.params.fill_in_below_share
-                {
-                    match points::sample_fill_in(m, previous, stride, incidence) {
-                        Some(fill) => {
-                            ctx.count("nonrigid_fill_in_points", fill.len() as f64);
-                            mostly_fill_in = fill.len() > points.len();
-                            points.extend(fill);
-                        }
-                        None => ctx.warn("fill_in skipped: the prediction and the previous frame differ in size"),
-                    }
-                }
-                (points, mostly_fill_in)
-            }
+        let (mut points, mostly_fill_in) = match (model, warps) {
+            (Some(m), true) => self.model_points(m, ctx),
             _ => (Vec::new(), false),
         };
         let ms_points = clock.elapsed().as_secs_f64() * 1e3;
         // A clearly moving wall: the joint solve refines the camera at level 0 itself.
         let p = &self.params;
         let coarse = warps && p.camera == CameraMode::Joint && self.moving.shortens(p.gain_window_frames, p.moving_probe_every_frames);
-        let rigid = if coarse {
+        if coarse {
             ctx.count("nonrigid_coarse_start", 1.0);
-            let stop = Stop::Coarse { lowest: p.coarse_start_level as usize };
-            self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, stop, ctx)?.0
-        } else {
-            self.rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, Stop::Fine, ctx)?.0
-        };
-        if model.is_none() || !warps || rigid.status == TrackStatus::Lost {
-            return Ok(rigid);
         }
-        let mut points = points;
+        let stop = if coarse { Stop::Coarse { lowest: p.coarse_start_level as usize } } else { Stop::Fine };
+        let (rigid, ready) = self.start(frame, model, t_world_prev, stop, warps.then_some(&points[..]), ctx);
+        let (rigid, ready) = match (rigid, ready) {
+            (Ok(rigid), Some(ready)) if rigid.status != TrackStatus::Lost => (rigid, ready),
+            (rigid, ready) => {
+                if let Some(ready) = ready {
+                    ready.release(&mut self.cache);
+                }
+                return rigid;
+            }
+        };
         if self.params.relight
             && let (Some(light), Some(m)) = (self.rigid.light(), model)
         {
             let relit = points::relight(&mut points, light, ctx.rig.camera(), &m.t_world_cam, &rigid.t_world_cam);
             ctx.count("nonrigid_relit_points", relit as f64);
         }
-        let (added, refused) = self.nodes.cover(&points, self.params.node_spacing_m, self.params.max_nodes as usize);
+        let Ready { nodes, added, refused, built, ms: ms_ready } = ready;
+        self.nodes = nodes;
         if refused > 0 {
             ctx.warn(format!("{refused} model points found no node: the cap max_nodes = {} is reached", self.params.max_nodes));
         }
         ctx.count("nonrigid_nodes_added", added as f64);
         ctx.count("ms_nonrigid_points", ms_points);
         let clock = std::time::Instant::now();
-        let mut rigid = rigid;
-        let mut outcome = self.solve_on_live(&points, mostly_fill_in, &rigid, !coarse, ctx);
-        if coarse {
-            if matches!(outcome, Ok(Some(_))) {
-                self.rigid.drop_unfinished();
-            } else {
-                if let Err(e) = &outcome {
-                    ctx.warn(format!("the joint solve from the coarse rigid start failed ({e}): the rigid start is finished and the frame solved again"));
-                }
-                // The solve did not stand on the coarse start: finish the rigid start at level 0
-                // and solve as on any other frame (the model points stay relit to the coarse pose).
-                ctx.count("nonrigid_coarse_start_finished", 1.0);
-                self.moving = Moving::default();
-                match self.rigid.finish_fine(ctx) {
-                    Some(fine) if fine.status == TrackStatus::Lost => return Ok(fine),
-                    Some(fine) => {
-                        rigid = fine;
-                        outcome = self.solve_on_live(&points, mostly_fill_in, &rigid, true, ctx);
-                    }
-                    None => ctx.warn("the coarse rigid start could not be finished at level 0: its pose stands"),
-                }
-            }
-        }
-        ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, clock.elapsed().as_secs_f64() * 1e3);
+        let outcome = self.solve_on_live(&points, mostly_fill_in, &rigid, !coarse, built, ctx);
+        let (rigid, outcome) = match coarse {
+            true => match self.finish_coarse(&points, mostly_fill_in, rigid, outcome, ctx) {
+                ControlFlow::Continue(solved) => solved,
+                ControlFlow::Break(lost) => return Ok(lost),
+            },
+            false => (rigid, outcome),
+        };
+        // The solver's time: building its problem (beside the rigid start) and solving it.
+        ctx.count("ms_nonrigid_ready", ms_ready);
+        ctx.count(capsule_slam_framework::context::WARP_SOLVER_MS, ms_ready + clock.elapsed().as_secs_f64() * 1e3);
         match outcome {
             Ok(Some(result)) => {
                 if self.params.camera == CameraMode::Joint {
@@ -231,20 +205,116 @@ impl Tracker for Nonrigid {
     }
 }
 
+/// A solve's result: the tracking result with the warp, none (the rigid pose stands), or an error.
+type Solved = Result<Option<TrackResult>, StageError>;
+
 impl Nonrigid {
-    /// [`Nonrigid::solve`] on the live frame's level, which the rigid start has made its
-    /// previous frame (borrowed for the solve).
+    /// The model points of the prediction `m` (`point_stride_px`, `max_incidence_rad`) with their
+    /// references in the previous live frame, and the previous frame's fill-in while the
+    /// prediction covers less of it than `fill_in_below_share`; whether the fill-in outnumbers
+    /// the predicted points.
+    fn model_points(&self, m: &ModelView, ctx: &mut Context) -> (Vec<ModelPoint>, bool) {
+        let previous = self.rigid.previous_level0();
+        let (stride, incidence) = (self.params.point_stride_px as usize, self.params.max_incidence_rad);
+        let mut points = points::sample(m, ctx.rig.camera(), previous.map(|l| &l.gray), stride, incidence);
+        let mut mostly_fill_in = false;
+        if let Some(previous) = previous
+            && self.params.fill_in_below_share > 0.0
+            && points::predicted_share(m, previous) < self.params.fill_in_below_share
+        {
+            match points::sample_fill_in(m, previous, stride, incidence) {
+                Some(fill) => {
+                    ctx.count("nonrigid_fill_in_points", fill.len() as f64);
+                    mostly_fill_in = fill.len() > points.len();
+                    points.extend(fill);
+                }
+                None => ctx.warn("fill_in skipped: the prediction and the previous frame differ in size"),
+            }
+        }
+        (points, mostly_fill_in)
+    }
+
+    /// The rigid start (the live pyramid and its registration, stopped at `stop`) and, when the
+    /// frame warps (`points`), alongside it on the other thread the nodes covering the points
+    /// and the problem built on them ([`Ready`]): neither needs the other.
+    fn start(
+        &mut self,
+        frame: &RgbdFrame,
+        model: Option<&ModelView>,
+        t_world_prev: &Iso3,
+        stop: Stop,
+        points: Option<&[ModelPoint]>,
+        ctx: &mut Context,
+    ) -> (Result<TrackResult, StageError>, Option<Ready>) {
+        let rigid = &mut self.rigid;
+        let mut register = |ctx: &mut Context| {
+            let live = rigid.live_pyramid(frame, ctx);
+            rigid.register_pyramid(live, frame.depth_source, model, t_world_prev, false, stop, ctx).map(|r| r.0)
+        };
+        match points {
+            Some(points) => {
+                let (params, nodes, cache) = (&self.params, &self.nodes, &mut self.cache);
+                let (rigid, ready) = rayon::join(|| register(ctx), || Ready::new(nodes, params, cache, points));
+                (rigid, Some(ready))
+            }
+            None => (register(ctx), None),
+        }
+    }
+
+    /// After a coarse rigid start: drops the unfinished registration when the solve stood;
+    /// otherwise finishes the rigid start at level 0 and solves again (the model points stay
+    /// relit to the coarse pose). Continues with the rigid result and the solve's, or breaks with
+    /// the finished rigid start when it lost track.
+    fn finish_coarse(
+        &mut self,
+        points: &[ModelPoint],
+        mostly_fill_in: bool,
+        rigid: TrackResult,
+        outcome: Solved,
+        ctx: &mut Context,
+    ) -> ControlFlow<TrackResult, (TrackResult, Solved)> {
+        if matches!(outcome, Ok(Some(_))) {
+            self.rigid.drop_unfinished();
+            return ControlFlow::Continue((rigid, outcome));
+        }
+        if let Err(e) = &outcome {
+            ctx.warn(format!("the joint solve from the coarse rigid start failed ({e}): the rigid start is finished and the frame solved again"));
+        }
+        ctx.count("nonrigid_coarse_start_finished", 1.0);
+        self.moving = Moving::default();
+        match self.rigid.finish_fine(ctx) {
+            Some(fine) if fine.status == TrackStatus::Lost => ControlFlow::Break(fine),
+            Some(fine) => {
+                let built = self.build(points);
+                let outcome = self.solve_on_live(points, mostly_fill_in, &fine, true, built, ctx);
+                ControlFlow::Continue((fine, outcome))
+            }
+            None => {
+                ctx.warn("the coarse rigid start could not be finished at level 0: its pose stands");
+                ControlFlow::Continue((rigid, outcome))
+            }
+        }
+    }
+
+    /// [`Nonrigid::solve`] of the `built` problem on the live frame's level, which the rigid
+    /// start has made its previous frame (borrowed for the solve).
     fn solve_on_live(
         &mut self,
         points: &[ModelPoint],
         mostly_fill_in: bool,
         rigid: &TrackResult,
         judge: bool,
+        built: Option<Result<Built, StageError>>,
         ctx: &mut Context,
-    ) -> Result<Option<TrackResult>, StageError> {
-        let Some(pyramid) = self.rigid.take_previous() else { return Ok(None) };
+    ) -> Solved {
+        let Some(pyramid) = self.rigid.take_previous() else {
+            if let Some(Ok(built)) = built {
+                built.prepared.keep(&mut self.cache);
+            }
+            return Ok(None);
+        };
         let level = &pyramid[(self.params.level as usize).min(pyramid.len() - 1)];
-        let outcome = self.solve(points, mostly_fill_in, level, rigid, judge, ctx);
+        let outcome = self.solve(points, mostly_fill_in, level, rigid, judge, built, ctx);
         self.rigid.restore_previous(pyramid);
         outcome
     }
@@ -255,6 +325,7 @@ impl Nonrigid {
     /// not lengthen the still-probe streak. Unless `judge`, the warp is kept without the model
     /// selection (from a coarse rigid start, `moving_probe_every_frames`), and a fallback is
     /// the caller's to tell.
+    #[allow(clippy::too_many_arguments)]
     fn solve(
         &mut self,
         points: &[ModelPoint],
@@ -262,9 +333,10 @@ impl Nonrigid {
         level: &Level,
         rigid: &TrackResult,
         judge: bool,
+        built: Option<Result<Built, StageError>>,
         ctx: &mut Context,
-    ) -> Result<Option<TrackResult>, StageError> {
-        let fit = self.fit(points, level, &rigid.t_world_cam, judge)?;
+    ) -> Solved {
+        let fit = self.fit_built(points, built, level, &rigid.t_world_cam, judge)?;
         if judge {
             let kept = match &fit {
                 Fit::Solved { judged, .. } => judged.unwrap_or(f64::NAN),
@@ -328,63 +400,6 @@ impl Nonrigid {
         }
     }
 
-    /// The frame's problem: the nodes with at least `min_points_per_node` model points (their
-    /// indices), the points bound to them, the graph with its edges; and every node's point
-    /// count. `None` when no node has enough points.
-    pub(crate) fn problem<'a>(&self, points: &'a [ModelPoint]) -> Option<(Problem<'a>, Vec<usize>, Vec<usize>)> {
-        let p = &self.params;
-        let reach = p.reach_m;
-        // Every node as a deformation (times 0, so the order is kept) to bind points.
-        let all =
-            Deformation::new(self.nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
-        // Each point's nodes within reach, found once for both bindings below.
-        let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
-        let near = self.nodes.within_each(&positions, reach);
-        let first: Vec<Vec<(usize, f64)>> = points.par_iter().zip(&near).map(|(q, near)| all.influences_among(&q.x_world_m, near.iter().copied())).collect();
-        let mut used = vec![0usize; all.nodes.len()];
-        for (i, _) in first.iter().flatten() {
-            used[*i] += 1;
-        }
-        let solve_ids: Vec<usize> = (0..used.len()).filter(|&i| used[i] >= p.min_points_per_node as usize).collect();
-        if solve_ids.is_empty() {
-            return None;
-        }
-        let mut index = vec![usize::MAX; all.nodes.len()];
-        for (s, &i) in solve_ids.iter().enumerate() {
-            index[i] = s;
-        }
-        let solve_nodes: Vec<DeformationNode> = solve_ids.iter().map(|&i| all.nodes[i]).collect();
-        let mut graph = Graph::new(Deformation::new(solve_nodes, p.k as usize, Window::All).within(reach), p.connectivity as usize, Edges::SpaceInWindow)
-            .with_model(p.node_model);
-        let normals: Vec<_> = solve_ids.iter().map(|&i| self.nodes.nodes[i].normal).collect();
-        let cos_edge = p.max_edge_angle_rad.cos();
-        for (j, nb) in graph.neighbours.iter_mut().enumerate() {
-            let g = graph.deformation.nodes[j].position_m;
-            let nodes = &graph.deformation.nodes;
-            nb.retain(|&n| (nodes[n].position_m - g).norm() <= p.max_edge_m && normals[j].dot(&normals[n]) >= cos_edge);
-        }
-        let normals = priors::smoothed_normals(&normals, &graph.neighbours, p.slide_normal_passes);
-        // A point whose nodes within reach are all solved keeps its first binding (the same
-        // candidates, renumbered in the same order: the same k nearest and weights).
-        let bound: Vec<(&ModelPoint, Vec<(usize, f64)>)> = points
-            .par_iter()
-            .zip(&near)
-            .zip(first)
-            .filter_map(|((q, near), mut first)| {
-                let b = if near.iter().all(|&i| index[i] != usize::MAX) {
-                    first.iter_mut().for_each(|(i, _)| *i = index[*i]);
-                    first
-                } else {
-                    let near = near.iter().filter_map(|&i| (index[i] != usize::MAX).then_some(index[i]));
-                    graph.deformation.influences_among(&q.x_world_m, near)
-                };
-                (!b.is_empty()).then_some((q, b))
-            })
-            .collect();
-        let references = solve_ids.iter().map(|&i| self.nodes.nodes[i].reference_m.coords).collect();
-        Some((Problem { points: bound, graph, references, normals, camera: p.camera == CameraMode::Joint }, solve_ids, used))
-    }
-
     /// Covers `points` with nodes (none kept from before need cover them) and fits: one
     /// registration of a model to a view, as the `deformation` closer's through the warp.
     pub(crate) fn fit_fresh(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3) -> Result<Fit, StageError> {
@@ -397,13 +412,39 @@ impl Nonrigid {
     /// without the model selection, and the camera is never held at `t_start` (a coarse start,
     /// `moving_probe_every_frames`: a step too large falls back instead).
     pub(crate) fn fit(&mut self, points: &[ModelPoint], level: &Level, t_start: &Iso3, judge: bool) -> Result<Fit, StageError> {
-        let clock = std::time::Instant::now();
-        let Some((mut problem, solve_ids, used)) = self.problem(points) else {
+        let built = self.build(points);
+        self.fit_built(points, built, level, t_start, judge)
+    }
+
+    /// The problem of `points` on the nodes, prepared ([`problem::build`]).
+    fn build(&mut self, points: &[ModelPoint]) -> Option<Result<Built, StageError>> {
+        problem::build(&self.nodes, &self.params, &mut self.cache, points)
+    }
+
+    /// The frame's problem: the nodes with at least `min_points_per_node` model points (their
+    /// indices), the points bound to them, the graph with its edges; and every node's point
+    /// count. `None` when no node has enough points.
+    #[cfg(test)]
+    pub(crate) fn problem(&self, points: &[ModelPoint]) -> Option<(Problem, Vec<usize>, Vec<usize>)> {
+        problem::problem_of(&self.nodes, &self.params, points)
+    }
+
+    /// [`Nonrigid::fit`] of the problem `build` made of `points` on the nodes (`None`: no node has
+    /// enough points).
+    fn fit_built(
+        &mut self,
+        points: &[ModelPoint],
+        built: Option<Result<Built, StageError>>,
+        level: &Level,
+        t_start: &Iso3,
+        judge: bool,
+    ) -> Result<Fit, StageError> {
+        let Some(built) = built else {
             return Ok(Fit::Fallback("no node has enough model points".into()));
         };
-        let ms_problem = clock.elapsed().as_secs_f64() * 1e3;
+        let Built { mut problem, solve_ids, used, prepared, ms_problem } = built?;
         let p = &self.params;
-        let mut outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
+        let mut outcome = problem.solve_prepared(points, prepared, level, t_start, &p.weights(), &mut self.cache)?;
         let mut held = false;
         if judge && problem.camera && p.hold_camera_on_step && self.camera_step_too_large(t_start, &outcome.t_world_cam) {
             // The warp again from the identity, the camera held at the rigid start.
@@ -411,7 +452,7 @@ impl Nonrigid {
                 *n = DeformationNode::identity(n.position_m, n.time);
             }
             problem.camera = false;
-            outcome = problem.solve(level, t_start, &p.weights(), &mut self.cache)?;
+            outcome = problem.solve(points, level, t_start, &p.weights(), &mut self.cache)?;
             held = true;
         }
         outcome.ms_problem = ms_problem;

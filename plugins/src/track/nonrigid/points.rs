@@ -9,6 +9,7 @@ use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::{GrayF32, Iso3, ModelView};
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
@@ -127,18 +128,18 @@ pub fn relight(points: &mut [ModelPoint], light: &LightModel, cam: &PinholeCamer
         let r = light.linear(cam, uv.x, uv.y, 1.0, &q, &n);
         (r > 1e-9).then_some(r)
     };
-    let mut relit = 0;
-    for p in points.iter_mut() {
-        let Some(g) = p.gray_ref else { continue };
-        p.gray_ref = match (response(t_world_ref, p), response(t_world_live, p)) {
-            (Some(r_ref), Some(r_live)) => {
-                relit += 1;
-                Some(light.encode(light.decode(g) * r_live / r_ref))
-            }
-            _ => None,
-        };
-    }
-    relit
+    // Each point alone, in parallel (the count is an integer sum: the same on any thread count).
+    points
+        .par_iter_mut()
+        .map(|p| {
+            let Some(g) = p.gray_ref else { return 0 };
+            p.gray_ref = match (response(t_world_ref, p), response(t_world_live, p)) {
+                (Some(r_ref), Some(r_live)) => Some(light.encode(light.decode(g) * r_live / r_ref)),
+                _ => None,
+            };
+            usize::from(p.gray_ref.is_some())
+        })
+        .sum()
 }
 
 /// What the live level says at the projection of a world point.

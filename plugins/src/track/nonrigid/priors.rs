@@ -10,7 +10,7 @@ use crate::common::ed_graph::NodeModel;
 use super::solve::{Problem, Weights};
 use super::system::Pattern;
 
-impl Problem<'_> {
+impl Problem {
     /// Adds the rest-shape, step and camera priors (all on the diagonal) and a tiny
     /// Levenberg term.
     pub(super) fn add_priors(&self, w: &Weights, xi: &Vector6<f64>, pattern: &mut Pattern, diag: &[usize], g: &mut [f64]) {

@@ -22,6 +22,7 @@ use crate::common::ed_graph::{Graph, NodeModel};
 use crate::track::icp_rgb::frames::Level;
 use crate::track::icp_rgb::{correlated_count, huber, residual_sigma};
 
+use super::assemble::Layout;
 use super::energy::{data_camera_row, data_residual, image_gradient_cam, photo_camera_row, photo_world_gradient};
 use super::points::{ModelPoint, look};
 use super::system::{Factor, Pattern, Residual};
@@ -79,10 +80,12 @@ pub struct Weights {
     pub gate_sigmas: f64,
 }
 
-/// One frame's problem.
-pub struct Problem<'a> {
-    /// The model points with their bindings (solve-node index, weight).
-    pub points: Vec<(&'a ModelPoint, Vec<(usize, f64)>)>,
+/// One frame's problem. It names its model points by their index in the slice every solve is
+/// given, so it can be built before the points' photometric references are relit to the rigid
+/// start (`Nonrigid::prepare`, alongside the rigid start).
+pub struct Problem {
+    /// The model points' indices with their bindings (solve-node index, weight).
+    pub points: Vec<(usize, Vec<(usize, f64)>)>,
     /// The graph of the solve nodes (live positions, identity transforms) and its edges.
     pub graph: Graph,
     /// Reference position of each solve node.
@@ -144,18 +147,60 @@ pub struct Cache {
     kept: Option<(Pattern, Factor)>,
 }
 
-impl<'a> Problem<'a> {
-    /// Solves from `t_start` (the rigid estimate); the graph's node transforms hold the warp.
-    pub fn solve(&mut self, level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
-        let nodes = self.graph.deformation.nodes.len();
-        let u = self.graph.model.unknowns();
+/// A problem's normal-equation layout with its analysed factorisation: all a solve needs
+/// before its first linearisation, none of it depending on the pose or the references.
+pub(crate) struct Prepared {
+    layout: Layout,
+    factor: Factor,
+    /// Symbolic analyses run (0: the cache's was reused).
+    analyses: usize,
+    /// Time laying out the pattern and analysing it, ms.
+    ms_setup: f64,
+    /// Of it, the analysis, ms.
+    ms_analyse: f64,
+}
+
+impl Prepared {
+    /// Gives the pattern and its analysis back to `cache` unused (a frame that lost track).
+    pub(crate) fn keep(self, cache: &mut Cache) {
+        cache.kept = Some((self.layout.pattern, self.factor));
+    }
+}
+
+impl Problem {
+    /// Solves from `t_start` (the rigid estimate) with the model points `model`; the graph's node
+    /// transforms hold the warp.
+    pub fn solve(&mut self, model: &[ModelPoint], level: &Level, t_start: &Iso3, w: &Weights, cache: &mut Cache) -> Result<Outcome, StageError> {
+        let prepared = self.prepare(model, w, cache)?;
+        self.solve_prepared(model, prepared, level, t_start, w, cache)
+    }
+
+    /// The layout of the normal equations and the analysis of their pattern (the cache's
+    /// analysis when the pattern is unchanged; taken from the cache either way).
+    pub(crate) fn prepare(&self, model: &[ModelPoint], w: &Weights, cache: &mut Cache) -> Result<Prepared, StageError> {
         let clock = std::time::Instant::now();
-        let mut layout = self.layout(w)?;
+        let layout = self.layout(model, w)?;
         let ms_layout = ms(clock);
-        let (mut factor, analyses) = match cache.kept.take() {
+        let (factor, analyses) = match cache.kept.take() {
             Some((old, f)) if old.same_structure(&layout.pattern) => (f, 0),
             _ => (Factor::new(&layout.pattern).map_err(solver_error)?, 1),
         };
+        Ok(Prepared { layout, factor, analyses, ms_setup: ms(clock), ms_analyse: ms(clock) - ms_layout })
+    }
+
+    /// [`Problem::solve`] with the layout and analysis `prepare` made for these points.
+    pub(crate) fn solve_prepared(
+        &mut self,
+        model: &[ModelPoint],
+        prepared: Prepared,
+        level: &Level,
+        t_start: &Iso3,
+        w: &Weights,
+        cache: &mut Cache,
+    ) -> Result<Outcome, StageError> {
+        let nodes = self.graph.deformation.nodes.len();
+        let u = self.graph.model.unknowns();
+        let Prepared { mut layout, mut factor, analyses, ms_setup, ms_analyse } = prepared;
         let mut t = *t_start;
         let mut xi = Vector6::<f64>::zeros();
         let (mut first_r2, mut last_r2) = (Vec::new(), Vec::new());
@@ -171,8 +216,8 @@ impl<'a> Problem<'a> {
             inliers_first: 0,
             icp_common_rms_m: (f64::INFINITY, f64::INFINITY),
             analyses,
-            ms_analyse: ms(clock) - ms_layout,
-            ms_setup: ms(clock),
+            ms_analyse,
+            ms_setup,
             ms_assemble: 0.0,
             ms_factor: 0.0,
             ms_problem: 0.0,
@@ -183,7 +228,7 @@ impl<'a> Problem<'a> {
         for _ in 0..w.iterations {
             let clock = std::time::Instant::now();
             let matrix = refactor || !w.reuse_factor;
-            let (g, (stats, r2)) = self.linearise(level, &t, &xi, w, &mut layout, matrix);
+            let (g, (stats, r2)) = self.linearise(model, level, &t, &xi, w, &mut layout, matrix);
             (out.inliers, out.icp_rms_m, out.rgb_rms) = stats;
             if out.iterations == 0 {
                 (out.inliers_first, out.icp_rms_first_m, out.rgb_rms_first) = stats;

@@ -236,19 +236,20 @@ fn assembled_normal_equations_equal_the_dense_products(model: NodeModel) {
     }
     let t_wc = capsule_slam_framework::geometry::exp_se3(&nalgebra::Vector6::new(1e-4, -2e-4, 5e-5, 1e-3, 0.0, -2e-3));
     let xi = nalgebra::Vector6::new(1e-4, 0.0, -1e-4, 1e-3, 2e-3, 0.0);
-    let mut layout = problem.layout(&w).unwrap();
-    let (g, _) = problem.linearise(&live, &t_wc, &xi, &w, &mut layout, true);
+    let mut layout = problem.layout(&points, &w).unwrap();
+    let (g, _) = problem.linearise(&points, &live, &t_wc, &xi, &w, &mut layout, true);
     let a = dense(&layout.pattern);
     // The chord method's iterations form the same gradient without the matrix.
-    let mut gradient_layout = problem.layout(&w).unwrap();
-    let (g_alone, _) = problem.linearise(&live, &t_wc, &xi, &w, &mut gradient_layout, false);
+    let mut gradient_layout = problem.layout(&points, &w).unwrap();
+    let (g_alone, _) = problem.linearise(&points, &live, &t_wc, &xi, &w, &mut gradient_layout, false);
     assert_eq!(g_alone, g, "{model:?}: the gradient alone differs from the full linearisation's");
     // The same terms as dense rows: data rows recorded from the same residual code, the graph's
     // rows from its visitor, the priors written out here.
     let n = a.nrows();
     let nodes = problem.graph.deformation.nodes.len();
     let mut rows: Vec<(nalgebra::DVector<f64>, f64, f64)> = Vec::new();
-    for (p, binding) in &problem.points {
+    for (i, binding) in &problem.points {
+        let p = &points[*i];
         problem.point_terms(&live, &t_wc, &w, p, binding, &mut |q: &super::system::Residual| {
             let mut j = nalgebra::DVector::zeros(n);
             for &(k, wk) in binding {
@@ -341,8 +342,8 @@ fn eigenvalues(priors: bool, model: NodeModel) -> Vec<f64> {
     }
     let w = t.params.weights();
     let (problem, _, _) = t.problem(&points).unwrap();
-    let mut layout = problem.layout(&w).unwrap();
-    problem.linearise(&live, &Iso3::identity(), &nalgebra::Vector6::zeros(), &w, &mut layout, true);
+    let mut layout = problem.layout(&points, &w).unwrap();
+    problem.linearise(&points, &live, &Iso3::identity(), &nalgebra::Vector6::zeros(), &w, &mut layout, true);
     let mut e: Vec<f64> = dense(&layout.pattern).symmetric_eigenvalues().iter().copied().collect();
     e.sort_by(f64::total_cmp);
     e
@@ -407,7 +408,8 @@ fn a_points_weight_follows_the_live_depths_sigma_and_its_correlation() {
     for (correlation_px, count) in [(0.0, 1.0), (8.0, 4.0)] {
         live.sigma_correlation_px = correlation_px;
         let mut rows = 0;
-        for (p, binding) in &problem.points {
+        for (i, binding) in &problem.points {
+            let p = &points[*i];
             problem.point_terms(&live, &t_wc, &w, p, binding, &mut |q: &super::system::Residual| {
                 let (r, wt) = (q.r, q.w);
                 let sigma = (w.sigma_icp_m * w.sigma_icp_m + sigma_live * sigma_live).sqrt();
@@ -545,4 +547,49 @@ fn the_slide_prior_holds_nodes_nearer_the_direction_a_wave_moves_the_wall() {
     assert!(one < 0.8 * raw && two < 0.8 * one, "tilts {raw:.1}°, {one:.1}° after one pass, {two:.1}° after two");
     // A node without neighbours keeps its normal.
     assert_eq!(super::priors::smoothed_normals(&normals[..1], &[Vec::new()], 3), normals[..1].to_vec());
+}
+
+#[test]
+fn a_problem_built_beside_the_rigid_start_solves_as_one_built_after_it() {
+    // `track` covers the model points with nodes and builds the problem on a copy of the nodes
+    // while the rigid start runs (`Ready`), relights the points, then solves. The fit must be the
+    // one of covering and building after the rigid start, on the relit points (the problem
+    // names its points by index: the references read at solve time are the relit ones).
+    let (_, points, live) = moved_wall();
+    let relit: Vec<ModelPoint> = points.iter().map(|p| ModelPoint { gray_ref: p.gray_ref.map(|g| 0.9 * g), ..*p }).collect();
+    let mut after = tracker(CameraMode::Joint);
+    after.nodes.cover(&points, after.params.node_spacing_m, 4096);
+    let covered = after.nodes.nodes.clone();
+    let expected = after.fit(&relit, &live, &Iso3::identity(), true).unwrap();
+
+    let mut beside = tracker(CameraMode::Joint);
+    let ready = Ready::new(&beside.nodes, &beside.params, &mut beside.cache, &points);
+    assert!(beside.nodes.nodes.is_empty(), "the tracker's nodes change only once the frame goes on");
+    assert_eq!(ready.nodes.nodes, covered);
+    assert_eq!(ready.added, covered.len());
+    beside.nodes = ready.nodes;
+    let got = beside.fit_built(&relit, ready.built, &live, &Iso3::identity(), true).unwrap();
+    let (Fit::Solved { t_world_cam: a, warp: wa, .. }, Fit::Solved { t_world_cam: b, warp: wb, .. }) = (expected, got) else { panic!("a fit fell back") };
+    assert_eq!(a, b, "the pose");
+    assert_eq!(wa, wb, "the warp");
+    assert_eq!(beside.nodes.nodes, after.nodes.nodes, "the nodes moved alike");
+    // With the old references the same problem fits otherwise: the relit ones were used.
+    let mut old = tracker(CameraMode::Joint);
+    old.nodes.cover(&points, old.params.node_spacing_m, 4096);
+    let Fit::Solved { warp: w_old, .. } = old.fit(&points, &live, &Iso3::identity(), true).unwrap() else { panic!("fell back") };
+    assert_ne!(w_old, wb);
+
+    // A frame that lost track drops its problem and gives the analysis back: the next solve of
+    // the same pattern reuses it, as it would have without the frame.
+    for release in [false, true] {
+        let mut t = tracker(CameraMode::Joint);
+        t.nodes.cover(&points, t.params.node_spacing_m, 4096);
+        let ready = Ready::new(&t.nodes, &t.params, &mut t.cache, &points);
+        assert_eq!(ready.added, 0);
+        if release {
+            ready.release(&mut t.cache);
+        }
+        let Fit::Solved { outcome, .. } = t.fit(&points, &live, &Iso3::identity(), true).unwrap() else { panic!("fell back") };
+        assert_eq!(outcome.analyses, usize::from(!release), "release {release}");
+    }
 }
