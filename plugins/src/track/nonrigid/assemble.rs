@@ -155,7 +155,11 @@ impl Problem {
                 for ((i, binding), b) in pts.iter().zip(bound) {
                     let p = &model[*i];
                     let mut sums = PointSums::default();
-                    let r2 = self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q));
+                    let r2 = if matrix {
+                        self.point_terms(level, t, w, p, binding, &mut |q| sums.add(q))
+                    } else {
+                        self.point_terms(level, t, w, p, binding, &mut |q| sums.add_gradient(q))
+                    };
                     if sums.count > 0 {
                         self.node_factors(b, &mut factors);
                         if matrix {

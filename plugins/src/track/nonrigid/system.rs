@@ -218,6 +218,15 @@ impl PointSums {
         self.rc += q.w * q.r * q.camera;
         self.count += 1;
     }
+
+    /// Adds one residual to the gradient's sums alone (`ra`, `rc`: all
+    /// [`Accumulator::add_point_gradient`] reads), as [`PointSums::add`] does.
+    pub fn add_gradient(&mut self, q: &Residual) {
+        let wa = q.w * q.a;
+        self.ra += q.r * wa;
+        self.rc += q.w * q.r * q.camera;
+        self.count += 1;
+    }
 }
 
 /// The most nodes a model point is bound to (the `k` parameter's range).
