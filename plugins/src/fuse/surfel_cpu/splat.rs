@@ -252,23 +252,34 @@ fn most_confident(surfels: &[Surfel], disc: impl Fn(&Surfel) -> Option<Disc> + S
     let rays = Rays::new(cam);
     let discs: Vec<(u32, Disc)> = surfels.par_iter().enumerate().filter_map(|(i, s)| disc(s).map(|d| (i as u32, d))).collect();
     let front: Vec<AtomicU32> = (0..n).map(|_| AtomicU32::new(u32::MAX)).collect();
-    discs.par_iter().for_each(|(_, d)| {
-        d.for_each_hit(&rays, depths, |k, t| {
-            if t.to_bits() < front[k].load(Ordering::Relaxed) {
-                front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
-            }
+    // The first pass keeps every hit (disc, pixel, depth) for the second, which then tests no
+    // ray again; the chunks' order does not matter to the atomic minima and maxima.
+    let hits: Vec<Vec<(u32, u32, f32)>> = discs
+        .par_iter()
+        .enumerate()
+        .fold(Vec::new, |mut hits, (j, (_, d))| {
+            d.for_each_hit(&rays, depths, |k, t| {
+                if t.to_bits() < front[k].load(Ordering::Relaxed) {
+                    front[k].fetch_min(t.to_bits(), Ordering::Relaxed);
+                }
+                hits.push((j as u32, k as u32, t));
+            });
+            hits
         })
-    });
+        .collect();
     // The key's low half is !(position in `discs`): discs are in surfel order, so ties still go
     // to the lowest surfel index.
+    let keys: Vec<u64> = discs
+        .par_iter()
+        .enumerate()
+        .map(|(j, (i, _))| (u64::from(conf_key(capped(surfels[*i as usize].confidence, depths))) << 32) | u64::from(!(j as u32)))
+        .collect();
     let best: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
-    discs.par_iter().enumerate().for_each(|(j, (i, d))| {
-        let key = (u64::from(conf_key(capped(surfels[*i as usize].confidence, depths))) << 32) | u64::from(!(j as u32));
-        d.for_each_hit(&rays, depths, |k, t| {
-            if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
-                best[k].fetch_max(key, Ordering::Relaxed);
-            }
-        })
+    hits.par_iter().flatten().for_each(|&(j, k, t)| {
+        let (key, k) = (keys[j as usize], k as usize);
+        if t <= f32::from_bits(front[k].load(Ordering::Relaxed)) + depths.blend_m && key > best[k].load(Ordering::Relaxed) {
+            best[k].fetch_max(key, Ordering::Relaxed);
+        }
     });
     let w = cam.width;
     best.into_par_iter()
