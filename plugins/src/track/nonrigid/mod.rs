@@ -55,6 +55,7 @@ mod assemble;
 mod energy;
 #[doc(hidden)]
 pub mod fixture;
+mod iterate;
 mod nodes;
 mod params;
 pub(crate) mod points;

@@ -10,11 +10,12 @@ use rayon::prelude::*;
 
 use crate::common::ed_graph::{Edges, Graph};
 
+use super::iterate::Prepared;
 use super::nodes::Nodes;
 use super::params::{CameraMode, NonrigidParams};
 use super::points::ModelPoint;
 use super::priors;
-use super::solve::{Cache, Prepared, Problem};
+use super::solve::{Cache, Problem};
 
 /// A frame's problem ready to solve.
 pub(crate) struct Built {
