@@ -1,7 +1,9 @@
 //! `icp-rgb`: one frame tracked against the prediction of a map fused from the 20 frames before
 //! it, at 250×250 and 320×320; unlit (no light model), relit with the phantom's `light.toml`,
 //! and relit on images whose lens-and-LED fall-off was divided out (the default pipeline's
-//! `vignetting`), which the tracker multiplies back in first.
+//! `vignetting`), which the tracker multiplies back in first. `bilateral`: the depth filter the
+//! trackers and fusers share, at 320×320, radius 1 (the default, each pair's weight taken once)
+//! and 2 (per tap).
 
 use capsule_slam_benches::{build_in, fused_map, phantom, rgbd, rig};
 use capsule_slam_framework::context::StageReport;
@@ -53,5 +55,17 @@ fn track(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, track);
+fn bilateral(c: &mut Criterion) {
+    let mut g = c.benchmark_group("bilateral");
+    let p = phantom(SizePreset::Capsule320, 300);
+    let depth = rgbd(&p, 100).depth_m;
+    for radius in [1usize, 2] {
+        g.bench_with_input(BenchmarkId::new("320x320", format!("radius {radius}")), &depth, |b, d| {
+            b.iter(|| capsule_slam_plugins::common::maps::bilateral_depth(d, radius, 2.0, 0.0008))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, track, bilateral);
 criterion_main!(benches);

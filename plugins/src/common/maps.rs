@@ -28,49 +28,132 @@ pub fn usable_depth(depth: &DepthMap, masks: &Masks, min_m: f32, max_m: f32) -> 
 }
 
 /// Edge-preserving smoothing of depth (ElasticFusion's bilateral filter, with organ-scale
-/// range σ): a `(2 radius + 1)²` window, spatial σ in pixels, range σ in metres; invalid
-/// pixels stay invalid and are never averaged in.
+/// range σ): a `(2 radius + 1)²` window, spatial σ in pixels, range σ in metres; pixels without
+/// depth (≤ 0) stay so and are never averaged in. Each pixel sums its taps' weights
+/// `exp(−|o|²/2σ_s² − (d_q − d_p)²/2σ_r²)` in row-major order; radius 1 (the default) takes
+/// each pair's exponential once ([`bilateral_3x3`]), with the same sums to the bit.
 pub fn bilateral_depth(depth: &DepthMap, radius: usize, sigma_space_px: f32, sigma_range_m: f32) -> DepthMap {
     let (w, h) = depth.size();
-    let r = radius as i64;
+    let mut out = DepthMap::new(w, h);
+    if w == 0 || h == 0 {
+        return out;
+    }
     let inv_s = -0.5 / (sigma_space_px * sigma_space_px);
     let inv_r = -0.5 / (sigma_range_m * sigma_range_m);
-    // The spatial exponent of each window offset, row-major: computed once, not per pixel.
-    let spatial: Vec<f32> = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| ((dx * dx + dy * dy) as f32) * inv_s)).collect();
-    let side = 2 * r + 1;
-    let mut out = DepthMap::new(w, h);
-    out.data_mut().par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
+    let window = Window::new(radius, inv_s, inv_r);
+    if radius == 1 {
+        bilateral_3x3(depth, &window, &mut out);
+        return out;
+    }
+    out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, out) in row.iter_mut().enumerate() {
-            let c = depth.at(x, y);
+            *out = window.filtered(depth, x, y);
+        }
+    });
+    out
+}
+
+/// A bilateral window: its radius, the spatial exponent of each offset (row-major, computed
+/// once, not per pixel) and the range exponent's factor.
+struct Window {
+    radius: usize,
+    spatial: Vec<f32>,
+    inv_r: f32,
+}
+
+impl Window {
+    fn new(radius: usize, inv_s: f32, inv_r: f32) -> Self {
+        let r = radius as i64;
+        let spatial = (-r..=r).flat_map(|dy| (-r..=r).map(move |dx| ((dx * dx + dy * dy) as f32) * inv_s)).collect();
+        Self { radius, spatial, inv_r }
+    }
+
+    /// The weight of a tap of depth `d` at window slot `slot` from a centre of depth `c`.
+    fn weight(&self, slot: usize, c: f32, d: f32) -> f32 {
+        (self.spatial[slot] + (d - c) * (d - c) * self.inv_r).exp()
+    }
+
+    /// The filtered depth at (x, y): the window clipped to the image, taps in row-major order.
+    fn filtered(&self, depth: &DepthMap, x: usize, y: usize) -> f32 {
+        let ((w, h), data, radius) = (depth.size(), depth.data(), self.radius);
+        let side = 2 * radius + 1;
+        let c = data[y * w + x];
+        if c <= 0.0 {
+            return 0.0;
+        }
+        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(h - 1));
+        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(w - 1));
+        let (mut sum, mut wsum) = (0.0f32, 0.0f32);
+        for yy in y0..=y1 {
+            let first = (yy + radius - y) * side + x0 + radius - x;
+            for (k, &d) in data[yy * w + x0..=yy * w + x1].iter().enumerate() {
+                if d <= 0.0 {
+                    continue;
+                }
+                // The centre's weight is exp(−0) = 1 exactly.
+                let wgt = if yy == y && x0 + k == x { 1.0 } else { self.weight(first + k, c, d) };
+                sum += wgt * d;
+                wsum += wgt;
+            }
+        }
+        sum / wsum
+    }
+}
+
+/// [`bilateral_depth`] with radius 1. A pair's weight is the same, to the bit, seen from either
+/// pixel (`(d_q − d_p)² = (d_p − d_q)²`, the spatial exponent symmetric), so each pixel's
+/// weights to its east, south-west, south and south-east neighbours are taken once, and read
+/// by both pixels of the pair; a tap without depth adds a weight of 0 (the same sums as
+/// skipping it). The image's border rows and columns take the clipped window.
+fn bilateral_3x3(depth: &DepthMap, window: &Window, out: &mut DepthMap) {
+    let (w, h) = depth.size();
+    let data = depth.data();
+    // The east, south-west, south and south-east taps: window slot (row-major, 3 × 3), dy, dx + 1.
+    const FORWARD: [(usize, usize, usize); 4] = [(5, 0, 2), (6, 1, 0), (7, 1, 1), (8, 1, 2)];
+    let mut pairs = vec![[0.0f32; 4]; w * h];
+    pairs.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.iter_mut().enumerate() {
+            let c = data[y * w + x];
             if c <= 0.0 {
                 continue;
             }
-            let (mut sum, mut wsum) = (0.0f32, 0.0f32);
-            for dy in -r..=r {
-                let yy = y as i64 + dy;
-                if yy < 0 || yy >= h as i64 {
+            for (k, &(slot, dy, dxp1)) in FORWARD.iter().enumerate() {
+                let (yy, xx) = (y + dy, (x + dxp1).wrapping_sub(1));
+                if yy >= h || xx >= w {
                     continue;
                 }
-                let source = &depth.data()[yy as usize * w..(yy as usize + 1) * w];
-                for dx in -r..=r {
-                    let xx = x as i64 + dx;
-                    if xx < 0 || xx >= w as i64 {
-                        continue;
-                    }
-                    let d = source[xx as usize];
-                    if d <= 0.0 {
-                        continue;
-                    }
-                    // The centre's weight is exp(−0) = 1 exactly.
-                    let wgt = if dx == 0 && dy == 0 { 1.0 } else { (spatial[((dy + r) * side + dx + r) as usize] + (d - c) * (d - c) * inv_r).exp() };
-                    sum += wgt * d;
-                    wsum += wgt;
+                let d = data[yy * w + xx];
+                if d > 0.0 {
+                    out[k] = window.weight(slot, c, d);
                 }
+            }
+        }
+    });
+    let valid = |d: f32| if d <= 0.0 { 0.0 } else { d };
+    out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.iter_mut().enumerate() {
+            if y == 0 || x == 0 || y + 1 == h || x + 1 == w {
+                *out = window.filtered(depth, x, y);
+                continue;
+            }
+            let i = y * w + x;
+            let c = data[i];
+            if c <= 0.0 {
+                continue;
+            }
+            // Row-major taps: the three above read the pair weights stored at them, the west
+            // one its east weight, the centre 1, the rest this pixel's own.
+            let (up, here) = (i - w, &pairs[i]);
+            let weights = [pairs[up - 1][3], pairs[up][2], pairs[up + 1][1], pairs[i - 1][0], 1.0, here[0], here[1], here[2], here[3]];
+            let taps = [data[up - 1], data[up], data[up + 1], data[i - 1], c, data[i + 1], data[i + w - 1], data[i + w], data[i + w + 1]];
+            let (mut sum, mut wsum) = (0.0f32, 0.0f32);
+            for (wgt, d) in weights.into_iter().zip(taps) {
+                sum += wgt * valid(d);
+                wsum += wgt;
             }
             *out = sum / wsum;
         }
     });
-    out
 }
 
 /// Back-projects every valid pixel: `v = K⁻¹ [u v 1]ᵀ d` (the paper's p(u, D)), as
@@ -280,29 +363,33 @@ mod tests {
 
     #[test]
     fn the_bilateral_filter_is_its_weighted_mean() {
-        let mut depth = rough_depth(40, 30);
-        depth.data_mut().iter_mut().filter(|d| d.is_nan()).for_each(|d| *d = 0.0);
-        for (radius, sigma_px, sigma_m) in [(1, 2.0f32, 0.0008f32), (2, 1.5, 0.003)] {
-            let f = bilateral_depth(&depth, radius, sigma_px, sigma_m);
-            let (inv_s, inv_r, r) = (-0.5 / (sigma_px * sigma_px), -0.5 / (sigma_m * sigma_m), radius as i64);
-            for y in 0..30i64 {
-                for x in 0..40i64 {
-                    let c = depth.at(x as usize, y as usize);
-                    let (mut sum, mut wsum) = (0.0f32, 0.0f32);
-                    for dy in -r..=r {
-                        for dx in -r..=r {
-                            let (xx, yy) = (x + dx, y + dy);
-                            if c <= 0.0 || !(0..40).contains(&xx) || !(0..30).contains(&yy) || depth.at(xx as usize, yy as usize) <= 0.0 {
-                                continue;
+        // Images smaller than the window too.
+        for (w, h) in [(40usize, 30usize), (1, 1), (3, 1), (1, 4), (2, 2)] {
+            let mut depth = rough_depth(w, h);
+            depth.data_mut().iter_mut().filter(|d| d.is_nan()).for_each(|d| *d = 0.0);
+            let (wi, hi) = (w as i64, h as i64);
+            for (radius, sigma_px, sigma_m) in [(0, 2.0f32, 0.0008f32), (1, 2.0, 0.0008), (2, 1.5, 0.003), (3, 1.5, 0.003)] {
+                let f = bilateral_depth(&depth, radius, sigma_px, sigma_m);
+                let (inv_s, inv_r, r) = (-0.5 / (sigma_px * sigma_px), -0.5 / (sigma_m * sigma_m), radius as i64);
+                for y in 0..hi {
+                    for x in 0..wi {
+                        let c = depth.at(x as usize, y as usize);
+                        let (mut sum, mut wsum) = (0.0f32, 0.0f32);
+                        for dy in -r..=r {
+                            for dx in -r..=r {
+                                let (xx, yy) = (x + dx, y + dy);
+                                if c <= 0.0 || !(0..wi).contains(&xx) || !(0..hi).contains(&yy) || depth.at(xx as usize, yy as usize) <= 0.0 {
+                                    continue;
+                                }
+                                let d = depth.at(xx as usize, yy as usize);
+                                let wgt = (((dx * dx + dy * dy) as f32) * inv_s + (d - c) * (d - c) * inv_r).exp();
+                                sum += wgt * d;
+                                wsum += wgt;
                             }
-                            let d = depth.at(xx as usize, yy as usize);
-                            let wgt = (((dx * dx + dy * dy) as f32) * inv_s + (d - c) * (d - c) * inv_r).exp();
-                            sum += wgt * d;
-                            wsum += wgt;
                         }
+                        let want = if c <= 0.0 { 0.0 } else { sum / wsum };
+                        assert_eq!(f.at(x as usize, y as usize).to_bits(), want.to_bits(), "pixel ({x}, {y}) of {w} × {h}, radius {radius}");
                     }
-                    let want = if c <= 0.0 { 0.0 } else { sum / wsum };
-                    assert_eq!(f.at(x as usize, y as usize).to_bits(), want.to_bits(), "pixel ({x}, {y}), radius {radius}");
                 }
             }
         }

@@ -2,32 +2,51 @@
 //! 3 levels with fx/2^l, cx/2^l).
 
 use capsule_slam_framework::{DepthMap, GrayF32};
+use rayon::prelude::*;
 
 /// Halves a depth map: the mean of the valid pixels of each 2×2 block whose values lie within
 /// `max_spread_m` of the block's first valid value (so depth edges are not blended); 0 if none.
 pub fn half_depth(d: &DepthMap, max_spread_m: f32) -> DepthMap {
-    let (w, h) = (d.width() / 2, d.height() / 2);
-    DepthMap::from_fn_par(w, h, |x, y| {
-        let vals = [d.at(2 * x, 2 * y), d.at(2 * x + 1, 2 * y), d.at(2 * x, 2 * y + 1), d.at(2 * x + 1, 2 * y + 1)];
-        let Some(first) = vals.iter().copied().find(|v| *v > 0.0) else { return [0.0] };
+    halved(d, |[top, bottom], x, _| {
+        let vals = [top[2 * x], top[2 * x + 1], bottom[2 * x], bottom[2 * x + 1]];
+        let Some(first) = vals.iter().copied().find(|v| *v > 0.0) else { return 0.0 };
         let (s, n) = vals.iter().filter(|v| **v > 0.0 && (**v - first).abs() <= max_spread_m).fold((0.0, 0), |(s, n), v| (s + v, n + 1));
-        [s / n as f32]
+        s / n as f32
     })
 }
 
-/// Halves an intensity image by 2×2 means over the pixels `valid` accepts (0 where none is).
-pub fn half_gray(g: &GrayF32, valid: impl Fn(usize, usize) -> bool + Sync) -> GrayF32 {
-    let (w, h) = (g.width() / 2, g.height() / 2);
-    GrayF32::from_fn_par(w, h, |x, y| {
+/// Halves an intensity image by 2×2 means over the pixels with depth (> 0 in `depth`, the same
+/// size) and an intensity (> 0); 0 where none has both.
+pub fn half_gray(g: &GrayF32, depth: &DepthMap) -> GrayF32 {
+    let (sw, d) = (g.width(), depth.data());
+    halved(g, |[top, bottom], x, y| {
+        let (d_top, d_bottom) = (&d[2 * y * sw..][..sw], &d[(2 * y + 1) * sw..][..sw]);
         let (mut s, mut n) = (0.0, 0);
-        for (xx, yy) in [(2 * x, 2 * y), (2 * x + 1, 2 * y), (2 * x, 2 * y + 1), (2 * x + 1, 2 * y + 1)] {
-            if valid(xx, yy) {
-                s += g.at(xx, yy);
+        for (g, d, k) in [(top, d_top, 2 * x), (top, d_top, 2 * x + 1), (bottom, d_bottom, 2 * x), (bottom, d_bottom, 2 * x + 1)] {
+            if d[k] > 0.0 && g[k] > 0.0 {
+                s += g[k];
                 n += 1;
             }
         }
-        [if n > 0 { s / n as f32 } else { 0.0 }]
+        if n > 0 { s / n as f32 } else { 0.0 }
     })
+}
+
+/// An image half the size of `src` (rounded down): pixel (x, y) is `f` of the source rows 2y
+/// and 2y + 1, x and y.
+fn halved(src: &GrayF32, f: impl Fn([&[f32]; 2], usize, usize) -> f32 + Sync) -> GrayF32 {
+    let (sw, w, h) = (src.width(), src.width() / 2, src.height() / 2);
+    let mut out = GrayF32::new(w, h);
+    if w == 0 {
+        return out;
+    }
+    out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let rows = [&src.data()[2 * y * sw..][..sw], &src.data()[(2 * y + 1) * sw..][..sw]];
+        for (x, out) in row.iter_mut().enumerate() {
+            *out = f(rows, x, y);
+        }
+    });
+    out
 }
 
 /// Bilinear interpolation weights at (u, v): the top-left pixel's offset and the fractions.
@@ -89,8 +108,11 @@ mod tests {
         let d = DepthMap::from_vec(2, 2, vec![0.03, 0.031, 0.0, 0.08]).unwrap();
         assert!((half_depth(&d, 0.005).at(0, 0) - 0.0305).abs() < 1e-7);
         let g = GrayF32::from_vec(4, 2, vec![1.0, 3.0, 5.0, 5.0, 1.0, 3.0, 5.0, 0.0]).unwrap();
-        let h = half_gray(&g, |x, y| g.at(x, y) > 0.0);
+        let h = half_gray(&g, &GrayF32::from_vec(4, 2, vec![1.0; 8]).unwrap());
         assert_eq!(h.data(), &[2.0, 5.0]);
+        // A pixel without depth is left out, a block with none is 0.
+        let h = half_gray(&g, &GrayF32::from_vec(4, 2, vec![1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0]).unwrap());
+        assert_eq!(h.data(), &[5.0 / 3.0, 0.0]);
         assert_eq!(bilinear(&g, 0.5, 0.5, true), Some(2.0));
         assert_eq!(bilinear(&g, 2.5, 0.5, true), None);
     }

@@ -87,8 +87,7 @@ pub fn pyramid(
         let normals = n0.take().unwrap_or_else(|| normal_map(&vertices, 1, prep.edge_jump_m * (1 << l) as f32));
         let (gx, gy) = gradients(&gray, &depth);
         let next_depth = half_depth(&depth, prep.edge_jump_m);
-        let (d, g) = (&depth, &gray);
-        let next_gray = half_gray(&gray, |x, y| d.at(x, y) > 0.0 && g.at(x, y) > 0.0);
+        let next_gray = half_gray(&gray, &depth);
         out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None, sigma_correlation_px: 0.0 });
         depth = next_depth;
         gray = next_gray;
