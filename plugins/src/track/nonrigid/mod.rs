@@ -152,7 +152,10 @@ impl Tracker for Nonrigid {
             ctx.count("nonrigid_coarse_start", 1.0);
         }
         let stop = if coarse { Stop::Coarse { lowest: p.coarse_start_level as usize } } else { Stop::Fine };
+        let clock_start = std::time::Instant::now();
         let (rigid, ready) = self.start(frame, model, t_world_prev, stop, warps.then_some(&points[..]), ctx);
+        // Wall time of the rigid start and the problem built beside it.
+        ctx.count("ms_start", clock_start.elapsed().as_secs_f64() * 1e3);
         let (rigid, ready) = match (rigid, ready) {
             (Ok(rigid), Some(ready)) if rigid.status != TrackStatus::Lost => (rigid, ready),
             (rigid, ready) => {
@@ -343,7 +346,7 @@ impl Nonrigid {
                 Fit::Solved { judged, .. } => judged.unwrap_or(f64::NAN),
                 _ => f64::NAN,
             };
-            self.moving.judged(kept.is_finite(), kept, 2.0 * self.params.min_rms_gain);
+            self.moving.judged(kept.is_finite(), kept, 2.0 * self.params.min_rms_gain, self.params.gain_window_frames);
         }
         match fit {
             Fit::Fallback(why) if !judge => {
@@ -427,7 +430,7 @@ impl Nonrigid {
     /// count. `None` when no node has enough points.
     #[cfg(test)]
     pub(crate) fn problem(&self, points: &[ModelPoint]) -> Option<(Problem, Vec<usize>, Vec<usize>)> {
-        problem::problem_of(&self.nodes, &self.params, points)
+        problem::problem_of(&self.nodes, &self.params, points, None)
     }
 
     /// [`Nonrigid::fit`] of the problem `build` made of `points` on the nodes (`None`: no node has

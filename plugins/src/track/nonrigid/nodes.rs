@@ -104,14 +104,21 @@ impl Nodes {
     /// facing the same way), up to `max_nodes` in all; returns how many were added and how many
     /// were refused by the cap.
     pub fn cover(&mut self, points: &[ModelPoint], spacing_m: f64, max_nodes: usize) -> (usize, usize) {
+        let positions: Vec<Point3<f64>> = points.iter().map(|p| p.x_world_m).collect();
+        let near = self.within_each(&positions, spacing_m);
+        self.cover_near(points, &near, spacing_m, max_nodes)
+    }
+
+    /// [`Nodes::cover`] given, per point, the nodes near it: any list that holds every node
+    /// within `spacing_m` of the point (the nodes within the reach, which the frame's problem
+    /// needs too, [`Nodes::within_each`]).
+    pub fn cover_near(&mut self, points: &[ModelPoint], near: &[Vec<usize>], spacing_m: f64, max_nodes: usize) -> (usize, usize) {
         let (mut added, mut refused) = (0, 0);
         // A point the nodes from before cover stays covered (nodes are only added here): those
         // are found in parallel, and the raster-order pass visits the others only.
-        let positions: Vec<Point3<f64>> = points.iter().map(|p| p.x_world_m).collect();
-        let near = self.within_each(&positions, spacing_m);
-        let covered: Vec<bool> = points.par_iter().zip(&near).map(|(p, near)| self.faces(p, near)).collect();
+        let covered: Vec<bool> = points.par_iter().zip(near).map(|(p, near)| self.faces(p, near, spacing_m)).collect();
         for p in points.iter().zip(&covered).filter(|(_, c)| !**c).map(|(p, _)| p) {
-            if self.faces(p, &self.within(&p.x_world_m, spacing_m)) {
+            if self.faces(p, &self.within(&p.x_world_m, spacing_m), spacing_m) {
                 continue;
             }
             if self.nodes.len() >= max_nodes {
@@ -126,9 +133,9 @@ impl Nodes {
         (added, refused)
     }
 
-    /// Whether one of the `near` nodes faces the point's way.
-    fn faces(&self, p: &ModelPoint, near: &[usize]) -> bool {
-        near.iter().any(|&i| self.nodes[i].normal.dot(&p.n_world) > 0.0)
+    /// Whether one of the `near` nodes within `spacing_m` of the point faces the point's way.
+    fn faces(&self, p: &ModelPoint, near: &[usize], spacing_m: f64) -> bool {
+        near.iter().any(|&i| (self.nodes[i].position_m - p.x_world_m).norm() <= spacing_m && self.nodes[i].normal.dot(&p.n_world) > 0.0)
     }
 
     /// Re-bins every node after positions changed.

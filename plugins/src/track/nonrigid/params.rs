@@ -193,8 +193,9 @@ capsule_slam_framework::plugin_params! {
         /// without the warp solve's cost. A probe whose own gain reaches `min_rms_gain`, or any
         /// kept warp or fallback, ends it. 1: solve every frame.
         pub still_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
-        /// While the wall is clearly moving (the last `gain_window_frames` judged solves all kept
-        /// their warp with a mean gain of at least twice `min_rms_gain`; `camera = "joint"`), the
+        /// While the wall is clearly moving (`camera = "joint"`; it becomes so once the last
+        /// `gain_window_frames` judged solves all kept their warp with a mean gain of at least twice
+        /// `min_rms_gain`, and stays so while every judged solve keeps its warp), the
         /// rigid start stops after the coarse levels on all but every this-many-th frame: the joint
         /// solve refines the camera at level 0 itself, and the rigid start's level 0 (about a third
         /// of its time) would be done twice. Those frames keep their warp unjudged (a gain from a

@@ -34,8 +34,13 @@ pub(crate) struct Built {
 /// The problem of `points` on `nodes` with its normal equations prepared (the analysis kept in
 /// `cache` when the pattern is unchanged); `None` when no node has enough model points.
 pub(crate) fn build(nodes: &Nodes, p: &NonrigidParams, cache: &mut Cache, points: &[ModelPoint]) -> Option<Result<Built, StageError>> {
+    build_near(nodes, p, cache, points, None)
+}
+
+/// [`build`] with each point's nodes within reach when they are known.
+fn build_near(nodes: &Nodes, p: &NonrigidParams, cache: &mut Cache, points: &[ModelPoint], near: Option<Vec<Vec<usize>>>) -> Option<Result<Built, StageError>> {
     let clock = std::time::Instant::now();
-    let (problem, solve_ids, used) = problem_of(nodes, p, points)?;
+    let (problem, solve_ids, used) = problem_of(nodes, p, points, near)?;
     let ms_problem = clock.elapsed().as_secs_f64() * 1e3;
     Some(problem.prepare(points, &p.weights(), cache).map(|prepared| Built { problem, solve_ids, used, prepared, ms_problem }))
 }
@@ -60,8 +65,12 @@ impl Ready {
     pub(crate) fn new(nodes: &Nodes, p: &NonrigidParams, cache: &mut Cache, points: &[ModelPoint]) -> Self {
         let clock = std::time::Instant::now();
         let mut nodes = nodes.clone();
-        let (added, refused) = nodes.cover(points, p.node_spacing_m, p.max_nodes as usize);
-        let built = build(&nodes, p, cache, points);
+        // Each point's nodes within reach serve the cover (reach ≥ spacing) and the problem; a
+        // frame that adds nodes finds them again.
+        let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
+        let near = nodes.within_each(&positions, p.reach_m);
+        let (added, refused) = nodes.cover_near(points, &near, p.node_spacing_m, p.max_nodes as usize);
+        let built = build_near(&nodes, p, cache, points, (added == 0).then_some(near));
         Self { nodes, added, refused, built, ms: clock.elapsed().as_secs_f64() * 1e3 }
     }
 
@@ -75,14 +84,17 @@ impl Ready {
 
 /// The frame's problem: the nodes with at least `min_points_per_node` model points (their
 /// indices), the points bound to them, the graph with its edges; and every node's point
-/// count. `None` when no node has enough points.
-pub(crate) fn problem_of(nodes: &Nodes, p: &NonrigidParams, points: &[ModelPoint]) -> Option<(Problem, Vec<usize>, Vec<usize>)> {
+/// count. `None` when no node has enough points. `near`: each point's nodes within reach
+/// ([`Nodes::within_each`]) when the caller has them.
+pub(crate) fn problem_of(nodes: &Nodes, p: &NonrigidParams, points: &[ModelPoint], near: Option<Vec<Vec<usize>>>) -> Option<(Problem, Vec<usize>, Vec<usize>)> {
     let reach = p.reach_m;
     // Every node as a deformation (times 0, so the order is kept) to bind points.
     let all = Deformation::new(nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
     // Each point's nodes within reach, found once for both bindings below.
-    let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
-    let near = nodes.within_each(&positions, reach);
+    let near = near.unwrap_or_else(|| {
+        let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
+        nodes.within_each(&positions, reach)
+    });
     let first: Vec<Vec<(usize, f64)>> = points.par_iter().zip(&near).map(|(q, near)| all.influences_among(&q.x_world_m, near.iter().copied())).collect();
     let mut used = vec![0usize; all.nodes.len()];
     for (i, _) in first.iter().flatten() {

@@ -466,22 +466,28 @@ fn a_clearly_moving_wall_starts_from_the_coarse_levels_on_all_but_every_nth_fram
     // Not yet clearly moving: every frame runs the full rigid start.
     assert!((0..10).all(|_| !moving.shortens(3, 8)));
     // Three judged solves that kept a warp with a clear gain, one without: the streak ends.
-    moving.judged(true, 0.07, 0.06);
-    moving.judged(true, 0.07, 0.06);
-    moving.judged(true, 0.05, 0.06);
+    moving.judged(true, 0.07, 0.06, 3);
+    moving.judged(true, 0.07, 0.06, 3);
+    moving.judged(true, 0.05, 0.06, 3);
     assert!(!moving.shortens(3, 8));
-    moving.judged(false, f64::NAN, 0.06);
+    moving.judged(false, f64::NAN, 0.06, 3);
     assert_eq!(moving.streak, 0);
     for _ in 0..3 {
-        moving.judged(true, 0.08, 0.06);
+        moving.judged(true, 0.08, 0.06, 3);
     }
     // Clearly moving: seven frames start coarse, the eighth runs the full start, and so on.
     let coarse: Vec<bool> = (0..16).map(|_| moving.shortens(3, 8)).collect();
     let full: Vec<usize> = (0..16).filter(|&i| !coarse[i]).collect();
     assert_eq!(full, vec![7, 15]);
-    // Never when `moving_probe_every_frames` = 1; a still verdict on a full frame ends it.
+    // Once clearly moving, a kept warp whose gain is below the clear gain keeps it moving
+    // (hysteresis); before the streak was full, the same gain ended it (above).
+    moving.judged(true, 0.04, 0.06, 3);
+    assert_eq!(moving.streak, 4);
+    assert!(moving.shortens(3, 8));
+    // Never when `moving_probe_every_frames` = 1; a warp not kept on a full frame ends it.
     assert!((0..10).all(|_| !moving.shortens(3, 1)));
-    moving.judged(false, 0.01, 0.06);
+    moving.judged(false, 0.01, 0.06, 3);
+    assert_eq!(moving.streak, 0);
     assert!((0..10).all(|_| !moving.shortens(3, 8)));
 }
 
@@ -578,6 +584,20 @@ fn a_problem_built_beside_the_rigid_start_solves_as_one_built_after_it() {
     old.nodes.cover(&points, old.params.node_spacing_m, 4096);
     let Fit::Solved { warp: w_old, .. } = old.fit(&points, &live, &Iso3::identity(), true).unwrap() else { panic!("fell back") };
     assert_ne!(w_old, wb);
+
+    // On nodes that already cover the points (none added), `Ready` binds them with the lists of
+    // nodes within reach it found for the cover: the same problem as one built afresh.
+    let mut fresh = tracker(CameraMode::Joint);
+    fresh.nodes.cover(&points, fresh.params.node_spacing_m, 4096);
+    let expected = fresh.fit(&relit, &live, &Iso3::identity(), true).unwrap();
+    let mut reused = tracker(CameraMode::Joint);
+    reused.nodes.cover(&points, reused.params.node_spacing_m, 4096);
+    let ready = Ready::new(&reused.nodes, &reused.params, &mut reused.cache, &points);
+    assert_eq!(ready.added, 0);
+    reused.nodes = ready.nodes;
+    let got = reused.fit_built(&relit, ready.built, &live, &Iso3::identity(), true).unwrap();
+    let (Fit::Solved { t_world_cam: a, warp: wa, .. }, Fit::Solved { t_world_cam: b, warp: wb, .. }) = (expected, got) else { panic!("a fit fell back") };
+    assert_eq!((a, wa), (b, wb), "the pose and the warp");
 
     // A frame that lost track drops its problem and gives the analysis back: the next solve of
     // the same pattern reuses it, as it would have without the frame.

@@ -54,9 +54,11 @@ impl Moving {
     }
 
     /// Files a judged solve: a warp kept with a windowed gain `judged` of at least
-    /// `clear_gain` lengthens the streak; anything else ends it.
-    pub(crate) fn judged(&mut self, kept: bool, judged: f64, clear_gain: f64) {
-        if kept && judged >= clear_gain {
+    /// `clear_gain` lengthens the streak, and so does any kept warp once the streak has reached
+    /// `window` (a wall clearly moving stays moving while its warp is kept: hysteresis between
+    /// entering at `clear_gain` and leaving below the keeping gain); anything else ends it.
+    pub(crate) fn judged(&mut self, kept: bool, judged: f64, clear_gain: f64, window: u32) {
+        if kept && (judged >= clear_gain || self.streak >= window) {
             self.streak += 1;
         } else {
             *self = Self::default();
