@@ -312,9 +312,7 @@ impl Nonrigid {
         ctx: &mut Context,
     ) -> Solved {
         let Some(pyramid) = self.rigid.take_previous() else {
-            if let Some(Ok(built)) = built {
-                built.prepared.keep(&mut self.cache);
-            }
+            problem::release(built, &mut self.cache);
             return Ok(None);
         };
         let level = &pyramid[(self.params.level as usize).min(pyramid.len() - 1)];

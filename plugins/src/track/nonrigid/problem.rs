@@ -70,15 +70,22 @@ impl Ready {
         let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
         let near = nodes.within_each(&positions, p.reach_m);
         let (added, refused) = nodes.cover_near(points, &near, p.node_spacing_m, p.max_nodes as usize);
-        let built = build_near(&nodes, p, cache, points, (added == 0).then_some(near));
+        let near = if added == 0 { near } else { nodes.within_each(&positions, p.reach_m) };
+        let built = build_near(&nodes, p, cache, points, Some(near));
         Self { nodes, added, refused, built, ms: clock.elapsed().as_secs_f64() * 1e3 }
     }
 
     /// Drops it unused (a frame that lost track), giving its pattern's analysis back to `cache`.
     pub(crate) fn release(self, cache: &mut Cache) {
-        if let Some(Ok(built)) = self.built {
-            built.prepared.keep(cache);
-        }
+        release(self.built, cache);
+    }
+}
+
+/// Drops a built problem unused, giving its pattern's analysis back to `cache` (the next solve
+/// of the same pattern reuses it).
+pub(crate) fn release(built: Option<Result<Built, StageError>>, cache: &mut Cache) {
+    if let Some(Ok(built)) = built {
+        built.prepared.keep(cache);
     }
 }
 
