@@ -48,6 +48,12 @@ impl Nodes {
         self.close(p, &self.hood(self.cell(p)), radius_m)
     }
 
+    /// [`Nodes::within_each`] at the model points' positions.
+    pub fn within_each_point(&self, points: &[ModelPoint], radius_m: f64) -> Vec<Vec<usize>> {
+        let positions: Vec<Point3<f64>> = points.iter().map(|p| p.x_world_m).collect();
+        self.within_each(&positions, radius_m)
+    }
+
     /// [`Nodes::within`] for many points at once: each cell's neighbourhood is gathered once,
     /// then filtered per point in parallel; the same lists.
     ///
@@ -104,8 +110,7 @@ impl Nodes {
     /// facing the same way), up to `max_nodes` in all; returns how many were added and how many
     /// were refused by the cap.
     pub fn cover(&mut self, points: &[ModelPoint], spacing_m: f64, max_nodes: usize) -> (usize, usize) {
-        let positions: Vec<Point3<f64>> = points.iter().map(|p| p.x_world_m).collect();
-        let near = self.within_each(&positions, spacing_m);
+        let near = self.within_each_point(points, spacing_m);
         self.cover_near(points, &near, spacing_m, max_nodes)
     }
 

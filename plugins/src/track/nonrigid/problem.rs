@@ -67,10 +67,9 @@ impl Ready {
         let mut nodes = nodes.clone();
         // Each point's nodes within reach serve the cover (reach ≥ spacing) and the problem; a
         // frame that adds nodes finds them again.
-        let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
-        let near = nodes.within_each(&positions, p.reach_m);
+        let near = nodes.within_each_point(points, p.reach_m);
         let (added, refused) = nodes.cover_near(points, &near, p.node_spacing_m, p.max_nodes as usize);
-        let near = if added == 0 { near } else { nodes.within_each(&positions, p.reach_m) };
+        let near = if added == 0 { near } else { nodes.within_each_point(points, p.reach_m) };
         let built = build_near(&nodes, p, cache, points, Some(near));
         Self { nodes, added, refused, built, ms: clock.elapsed().as_secs_f64() * 1e3 }
     }
@@ -98,10 +97,7 @@ pub(crate) fn problem_of(nodes: &Nodes, p: &NonrigidParams, points: &[ModelPoint
     // Every node as a deformation (times 0, so the order is kept) to bind points.
     let all = Deformation::new(nodes.nodes.iter().map(|n| DeformationNode::identity(n.position_m, 0)).collect(), p.k as usize, Window::All).within(reach);
     // Each point's nodes within reach, found once for both bindings below.
-    let near = near.unwrap_or_else(|| {
-        let positions: Vec<_> = points.iter().map(|q| q.x_world_m).collect();
-        nodes.within_each(&positions, reach)
-    });
+    let near = near.unwrap_or_else(|| nodes.within_each_point(points, reach));
     let first: Vec<Vec<(usize, f64)>> = points.par_iter().zip(&near).map(|(q, near)| all.influences_among(&q.x_world_m, near.iter().copied())).collect();
     let mut used = vec![0usize; all.nodes.len()];
     for (i, _) in first.iter().flatten() {
