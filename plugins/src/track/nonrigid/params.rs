@@ -202,7 +202,11 @@ capsule_slam_framework::plugin_params! {
         /// coarse start counts the camera's own refinement too); one whose solve falls back, or
         /// would hold the camera at the coarse pose, finishes the rigid start at level 0 and is
         /// solved again as any other frame (counter `nonrigid_coarse_start_finished`). 1: never.
-        pub moving_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
+        /// 16, not 8: over the 30 deforming runs the two are alike within a null change's spread
+        /// in two grids (ATE sums 3.401 / 8.550 against 3.392 / 8.372 % at `15cbfc8`, 3.478 / 8.405
+        /// against 3.361 / 8.211 % at `fe32e0a`), the rigid twins byte-identical, and `track`
+        /// 1 ms shorter per frame on `p2d2` (`docs/results/nonrigid.md`).
+        pub moving_probe_every_frames: u32 = 16; unit = "frames"; range = 1.0..=1000.0;
         /// The coarse rigid start runs the pyramid levels from the coarsest down to this one,
         /// then level 0's first iteration: 2, level 2 alone (a sixteenth of the pixels); 1, levels
         /// 2 and 1. Over the 30 deforming phantom runs the two are alike within a null change's
