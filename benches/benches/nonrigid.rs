@@ -5,6 +5,11 @@
 //! nodes (12 unknowns, the default) and twist nodes (6), each by Gauss-Newton (`gn`, a
 //! factorisation per iteration) and by the chord method (`chord`, `reuse_factor`: the first
 //! iteration's factorisation kept while the steps shrink).
+//!
+//! `nonrigid-analysis`: the symbolic analysis of the same cases' patterns (affine nodes), by
+//! faer's AMD on the scalar matrix (`scalar`) and by AMD on the node graph with each node's
+//! unknowns kept together (`block`, the tracker's; `SparseLlt::blocked`). The warp solve
+//! analyses anew whenever the model points couple other node pairs, on the phantom every frame.
 
 use capsule_slam_plugins::common::ed_graph::NodeModel;
 use capsule_slam_plugins::track::nonrigid::fixture::SolverCase;
@@ -26,5 +31,20 @@ fn solve(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, solve);
+fn analysis(c: &mut Criterion) {
+    let mut group = c.benchmark_group("nonrigid-analysis");
+    group.sample_size(10);
+    for n in [64usize, 256, 1024, 4096] {
+        let case = SolverCase::new(n, NodeModel::Affine).unwrap_or_else(|e| panic!("{n} nodes: {e}"));
+        let pattern = case.pattern().unwrap_or_else(|e| panic!("{n} nodes: {e}"));
+        for (name, block) in [("scalar", false), ("block", true)] {
+            let fill = pattern.analyse(block).unwrap_or_else(|e| panic!("{name}, {n} nodes: {e}"));
+            eprintln!("nonrigid-analysis/{name}/{}: {} unknowns, {fill} values in the factor", case.nodes, pattern.unknowns);
+            group.bench_with_input(BenchmarkId::new(name, case.nodes), &n, |b, _| b.iter(|| pattern.analyse(block)));
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, solve, analysis);
 criterion_main!(benches);

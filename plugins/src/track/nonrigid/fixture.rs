@@ -123,6 +123,16 @@ impl SolverCase {
         self
     }
 
+    /// The normal-equation pattern of this case's solve (the nodes with their model points
+    /// bound), as the solve lays it out before analysing it.
+    pub fn pattern(&self) -> Result<PatternCase, capsule_slam_framework::StageError> {
+        let p = &self.tracker.params;
+        let (problem, _, _) = super::problem::problem_of(&self.tracker.nodes, p, &self.points, None)
+            .ok_or_else(|| capsule_slam_framework::StageError::invalid_input("no node has enough model points"))?;
+        let pattern = problem.layout(&self.points, &p.weights())?.pattern;
+        Ok(PatternCase { unknowns: pattern.unknowns(), pattern })
+    }
+
     /// Binds, assembles and solves once (the tracker's nodes are reset so every call does the
     /// same work); returns whether it solved.
     pub fn solve(&mut self) -> bool {
@@ -130,5 +140,21 @@ impl SolverCase {
         let solved = matches!(self.tracker.fit(&self.points, &self.live, &Iso3::identity(), true), Ok(Fit::Solved { .. }));
         self.tracker.nodes = saved;
         solved
+    }
+}
+
+/// A solve's normal-equation pattern, for timing its symbolic analysis (the
+/// `nonrigid-analysis` criterion bench).
+pub struct PatternCase {
+    pattern: super::system::Pattern,
+    /// Unknowns of the pattern.
+    pub unknowns: usize,
+}
+
+impl PatternCase {
+    /// Analyses the pattern with scalar AMD (`block = false`) or AMD on the node graph (the
+    /// tracker's); returns the number of values of the Cholesky factor (its fill).
+    pub fn analyse(&self, block: bool) -> Result<usize, capsule_slam_framework::StageError> {
+        self.pattern.analyse(block).map(|llt| llt.factor_len()).map_err(|e| capsule_slam_framework::StageError::invalid_input(e.to_string()))
     }
 }

@@ -98,6 +98,17 @@ impl Pattern {
         Self { a: SparseColMat::new(symbolic, values), nodes, camera, model, blocks, column_start, block_slots, camera_slots, camera_block }
     }
 
+    /// Analyses the pattern with scalar AMD (`block = false`, faer's own ordering) or AMD on the
+    /// node graph ([`SparseLlt::blocked`], what [`Factor::new`] does): the two orderings that the
+    /// `nonrigid-analysis` criterion bench times.
+    pub fn analyse(&self, block: bool) -> Result<SparseLlt, SparseLltError> {
+        let tail = if self.camera { 6 } else { 0 };
+        match block {
+            true => SparseLlt::blocked(self.a.symbolic(), self.nodes, self.model.unknowns(), &self.blocks, tail),
+            false => SparseLlt::new(self.a.symbolic(), false),
+        }
+    }
+
     /// Unknowns in all.
     pub fn unknowns(&self) -> usize {
         self.a.nrows()
@@ -420,8 +431,7 @@ impl Factor {
     /// ([`SparseLlt::blocked`]: the scalar AMD's analysis took 2.3 ms a frame on the phantom's
     /// 90-odd affine nodes, this one 1.3 ms, with the same factorisation time).
     pub fn new(pattern: &Pattern) -> Result<Self, SparseLltError> {
-        let tail = if pattern.camera { 6 } else { 0 };
-        Ok(Self { llt: SparseLlt::blocked(pattern.a.symbolic(), pattern.nodes, pattern.model.unknowns(), &pattern.blocks, tail)? })
+        Ok(Self { llt: pattern.analyse(true)? })
     }
 
     /// Solves `A δ = −g` for the pattern's current values.
