@@ -39,9 +39,12 @@ impl SparseLlt {
     /// each (block b's are `block·b .. block·(b+1)`), coupled in the lower-triangle `pairs`
     /// `(i ≥ j)`, then `tail` unknowns coupled to everything (a camera's, last). The fill-
     /// reducing ordering is AMD's on the block graph, each block's unknowns kept together and
-    /// the tail last: the ordering scalar AMD finds on such a matrix (it detects the blocks
-    /// as supervariables and defers the dense tail), for the cost of ordering a graph `block²`
-    /// times smaller. `pattern` must be the scalar pattern of that block structure.
+    /// the tail last, much as scalar AMD orders such a matrix (it finds the blocks as
+    /// supervariables and defers the dense tail), for the cost of ordering a graph `block²`
+    /// times smaller. The fill is not always the same: on the warp solve's patterns it is
+    /// within 0.4 % and on the solver bench's patches identical, but on a grid of blocks
+    /// coupled to their four neighbours alone it was 31 % larger. `pattern` must be the scalar
+    /// pattern of that block structure.
     pub fn blocked(
         pattern: SymbolicSparseColMatRef<'_, usize>,
         blocks: usize,
