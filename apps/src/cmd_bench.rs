@@ -92,6 +92,7 @@ pub fn run_bench(args: &BenchArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow:
             }
         }
         println!("|   {w}×{h}: {} surfels at the end, ATE {:.3} mm |", summary.surfels, summary.ate_rmse_m.unwrap_or(f64::NAN) * 1e3);
+        println!("|   {w}×{h}: a frame's preprocess, depth and track times include its preparation beside the previous frame's fusion; total is wall time |");
     }
     Ok(())
 }

@@ -1,14 +1,15 @@
 //! Test-only stages that prove the pipeline runner end to end. They are deliberately simple
 //! but real: the point fuser keeps every fused pixel as a surfel and renders them with a
-//! z-buffer; the shift closer returns a known rigid deformation at a chosen frame.
+//! z-buffer; the shift closer returns a known rigid deformation at a chosen frame; the probe
+//! tells what a preprocessor was given.
 
 use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
 use capsule_slam_framework::map::MapStats;
 use capsule_slam_framework::registry::{BuildEnv, PluginEntry};
 use capsule_slam_framework::stage::{FuseStats, LoopClosure, LoopInput};
 use capsule_slam_framework::{
-    CameraFrame, Context, DepthEstimate, DepthEstimator, Fuser, Iso3, LoopCloser, ModelSet, ModelView, Plugin, RgbdFrame, StageError, Surfel, SurfelSet,
-    TrackResult, Tracker, ViewKind,
+    CameraFrame, Context, DepthEstimate, DepthEstimator, Fuser, Iso3, LoopCloser, ModelSet, ModelView, Plugin, Preprocessor, RgbdFrame, StageError, Surfel,
+    SurfelSet, TrackResult, Tracker, ViewKind,
 };
 use nalgebra::Vector3;
 
@@ -238,6 +239,49 @@ impl Tracker for BadPoseTracker {
     }
 }
 
+capsule_slam_framework::plugin_params! {
+    /// Parameters of the test prediction probe.
+    pub struct ProbeParams {
+        /// What it answers to `reads_prediction`.
+        pub reads_prediction: bool = false; unit = "-";
+        /// The frame it fails on.
+        pub fail_at_frame: u32 = 1000000; unit = "frame"; range = 0.0..=1.0e9;
+    }
+}
+
+/// A preprocessor that leaves the frame alone and counts, per frame, whether it was given the
+/// map's prediction (`saw_prediction`) and the index of the frame it processed last before
+/// this one (`previous_frame`, −1 for none); it fails at `fail_at_frame`.
+pub struct PredictionProbe {
+    params: ProbeParams,
+    previous: Option<usize>,
+}
+
+impl Plugin for PredictionProbe {
+    const NAME: &'static str = "test-probe";
+    const SUMMARY: &'static str = "test only: tells whether a preprocessor was given the prediction";
+    type Params = ProbeParams;
+    fn build(params: ProbeParams, _env: &BuildEnv) -> Result<Self, StageError> {
+        Ok(Self { params, previous: None })
+    }
+}
+
+impl Preprocessor for PredictionProbe {
+    fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
+        if frame.index as u32 == self.params.fail_at_frame {
+            return Err(StageError::invalid_input(format!("test-probe fails at frame {}", frame.index)));
+        }
+        ctx.count("saw_prediction", if ctx.prediction.is_some() { 1.0 } else { 0.0 });
+        ctx.count("previous_frame", self.previous.map_or(-1.0, |p| p as f64));
+        self.previous = Some(frame.index);
+        Ok(())
+    }
+
+    fn reads_prediction(&self) -> bool {
+        self.params.reads_prediction
+    }
+}
+
 /// A stereo-only depth estimator, to test rig validation.
 pub struct StereoOnly;
 
@@ -274,5 +318,6 @@ pub fn test_registry() -> capsule_slam_framework::Registry {
     r.register(PluginEntry::depth_estimator::<StereoOnly>()).expect("register test-stereo");
     r.register(PluginEntry::tracker::<WarpTracker>()).expect("register test-warp");
     r.register(PluginEntry::tracker::<BadPoseTracker>()).expect("register test-bad-pose");
+    r.register(PluginEntry::preprocessor::<PredictionProbe>()).expect("register test-probe");
     r
 }

@@ -192,4 +192,7 @@ pub enum PipelineError {
     /// there is no map): what it wrote is kept, its summary says so.
     #[error("{0}")]
     NoResult(String),
+    /// Frames handed to the pipeline out of order (a `process` while a pushed frame waits).
+    #[error("{0}")]
+    Order(String),
 }

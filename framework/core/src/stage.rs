@@ -20,6 +20,13 @@ use crate::map::{MapStats, ModelSet, ModelView, SurfelSet};
 pub trait Preprocessor: Send {
     /// Processes one frame in place.
     fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError>;
+    /// Whether processing the next frame reads `ctx.prediction`, the map's prediction that the
+    /// pipeline has only once the current frame is fused. A stage that does not may process the
+    /// next frame while the current one is fused ([`crate::pipeline::Pipeline::push`]); it then
+    /// gets no prediction. `true` (the safe answer) unless the plugin says otherwise.
+    fn reads_prediction(&self) -> bool {
+        true
+    }
 }
 
 /// A depth map with an optional per-pixel confidence.
@@ -70,6 +77,11 @@ pub trait DepthEstimator: Send {
     /// Estimates depth for the frame's reference view. `ctx.prediction` holds the model
     /// prediction at the previous pose, for estimators that use the map (e.g. its albedo).
     fn estimate(&mut self, frame: &CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError>;
+    /// Whether estimating the next frame's depth reads `ctx.prediction`
+    /// ([`Preprocessor::reads_prediction`]). `true` unless the plugin says otherwise.
+    fn reads_prediction(&self) -> bool {
+        true
+    }
 }
 
 /// Whether tracking succeeded.
@@ -128,6 +140,13 @@ pub trait Tracker: Send {
     /// the map has anything to show. A tracker that cannot track returns
     /// [`TrackStatus::Lost`], not an error.
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError>;
+    /// Work on `frame` that needs neither the map nor a pose (e.g. the live frame's pyramid),
+    /// done ahead: the pipeline calls it, when frames are pushed ([`crate::pipeline::Pipeline::push`]),
+    /// while the previous frame is fused, and the next [`Tracker::track`] is of this frame.
+    /// Tracking must give the same result with it as without. Nothing by default.
+    fn prepare(&mut self, frame: &RgbdFrame, ctx: &mut Context) {
+        let _ = (frame, ctx);
+    }
 }
 
 /// Counts from fusing one frame.

@@ -66,32 +66,37 @@ pub fn run_observed(
     let sim3 = opts.eval_sim3 || !pipeline.metric_scale();
     let eval_opts = EvalOptions { tolerance_s: pipeline.resolved_config().input.association_tolerance_s, sim3, ..EvalOptions::default() };
     let report_closures = opts.closure_report && truth.is_some() && !dataset.ground_truth().is_empty();
-    for i in 0..n {
-        let before = if report_closures { Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?, pipeline.trajectory().to_vec())) } else { None };
-        let rec = match load(dataset, pipeline, i, &mut load_warnings) {
-            Ok(frame) => pipeline.process(frame),
-            Err(e) => Err(PipelineError::LoadAt { frame: i, source: e }),
+    // Frame i is handed in while frame i − 1 is processed (`Pipeline::push`): its preprocessing
+    // runs beside the fusion of the frame before it.
+    for i in 0..=n {
+        // The map and trajectory before frame i − 1, which this step processes.
+        let before = if report_closures && i > 0 {
+            Some((pipeline.snapshot().map_err(|e| stage_error(pipeline, i - 1, e))?, pipeline.trajectory().to_vec()))
+        } else {
+            None
         };
+        let (rec, load_failure) = hand_in(dataset, pipeline, i, n, &mut load_warnings);
         match rec {
-            Ok(rec) => {
-                if let (true, Some((map, traj)), Some(truth)) = (rec.loop_closed, &before, &truth) {
-                    let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, i, e))?;
-                    let score =
-                        |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&written_map(pipeline, map), truth)), &eval_opts);
-                    let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
-                    writer.write_closure(i, &b, &a)?;
+            Some(Ok(rec)) => {
+                if let (true, Some(before), Some(truth)) = (rec.loop_closed, &before, &truth) {
+                    score_closure(dataset, pipeline, writer, rec.index, before, truth, &eval_opts)?;
                 }
                 writer.write_frame(&frame_row(&rec))?;
                 on_frame(&rec, pipeline);
                 counters.add(&rec); // the reports are written (`counters.jsonl`) and summed
                 records.push(FrameRecord { reports: Default::default(), ..rec });
             }
-            Err(e) => {
+            Some(Err(e)) => {
                 // A stage's or a frame's load error names its frame; any other: add it.
-                failed_at = (!matches!(e, PipelineError::Stage { .. } | PipelineError::LoadAt { .. })).then_some(i);
+                failed_at = (!matches!(e, PipelineError::Stage { .. } | PipelineError::LoadAt { .. })).then_some(i - 1);
                 failure = Some(e);
                 break;
             }
+            None => {}
+        }
+        if let Some(e) = load_failure {
+            failure = Some(e);
+            break;
         }
     }
 
@@ -110,12 +115,9 @@ pub fn run_observed(
     let mut summary = summarise(pipeline, &records, &counters, truth_warning.into_iter().chain(load_warnings));
     summary.build = opts.build;
     evaluate_run(dataset, pipeline, &records, map.as_ref(), truth.as_ref(), &eval_opts, &mut summary)?;
+    depth_score(&records, &mut summary);
     if let (Some(w), Some(m)) = (&whole, &map) {
         note_left_out(dataset, pipeline, (w, m), truth.as_ref(), &eval_opts, &mut summary);
-    }
-    let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
-    if !abs_rel.is_empty() {
-        summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
     }
     if let Some(f) = &failure {
         summary.status = failed_status(f, failed_at);
@@ -125,6 +127,49 @@ pub fn run_observed(
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// Hands frame `i` of `n` to the pipeline, or after the last finishes it: the record of the
+/// frame before it when one was processed, and frame `i`'s load error when it could not be read.
+fn hand_in(
+    dataset: &Dataset,
+    pipeline: &mut Pipeline,
+    i: usize,
+    n: usize,
+    warnings: &mut Vec<String>,
+) -> (Option<Result<FrameRecord, PipelineError>>, Option<PipelineError>) {
+    match (i < n).then(|| load(dataset, pipeline, i, warnings)) {
+        Some(Ok(frame)) => (pipeline.push(frame), None),
+        Some(Err(e)) => (pipeline.finish(), Some(PipelineError::LoadAt { frame: i, source: e })),
+        None => (pipeline.finish(), None),
+    }
+}
+
+/// The mean of the frames' depth AbsRel (depth estimated and scored in the run), into `summary`.
+fn depth_score(records: &[FrameRecord], summary: &mut Summary) {
+    let abs_rel: Vec<f64> = records.iter().filter_map(|r| r.depth_abs_rel).collect();
+    if !abs_rel.is_empty() {
+        summary.metrics.insert("depth_abs_rel".into(), abs_rel.iter().sum::<f64>() / abs_rel.len() as f64);
+    }
+}
+
+/// A loop closure applied at frame `index`: the trajectory's ATE and the map's surface error
+/// just `before` it (map and trajectory) and just after, into `closures.csv`.
+fn score_closure(
+    dataset: &Dataset,
+    pipeline: &Pipeline,
+    writer: &mut RunWriter,
+    index: usize,
+    before: &(SurfelSet, Vec<StampedPose>),
+    truth: &SurfelSet,
+    eval_opts: &EvalOptions,
+) -> Result<(), PipelineError> {
+    let (map, traj) = before;
+    let after = pipeline.snapshot().map_err(|e| stage_error(pipeline, index, e))?;
+    let score = |map: &SurfelSet, traj: &[StampedPose]| evaluate(traj, dataset.ground_truth(), Some((&written_map(pipeline, map), truth)), eval_opts);
+    let (b, a) = (score(map, traj), score(&after, &pipeline.trajectory()[..traj.len()]));
+    writer.write_closure(index, &b, &a)?;
+    Ok(())
 }
 
 /// The summary of the records before the evaluation: the pipeline, its scale and the run's

@@ -59,6 +59,10 @@ impl Plugin for Sensor {
 }
 
 impl DepthEstimator for Sensor {
+    fn reads_prediction(&self) -> bool {
+        false
+    }
+
     fn source(&self) -> capsule_slam_framework::frame::DepthSource {
         capsule_slam_framework::frame::DepthSource::Measured
     }

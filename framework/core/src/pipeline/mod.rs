@@ -11,6 +11,7 @@
 //!                                                    Fuser.fuse ─► Fuser.predict(Active)
 //! ```
 
+mod front;
 pub mod record;
 
 use std::time::Instant;
@@ -20,15 +21,16 @@ use crate::config::validate::validate;
 use crate::config::{Config, InitialPose};
 use crate::context::{Context, StageReport};
 use crate::deformation::Deformation;
-use crate::depth_error::depth_error;
 use crate::error::{ConfigError, ConfigProblem, PipelineError, StageError};
-use crate::frame::{CameraFrame, DepthSource, RgbdFrame, Views};
+use crate::frame::{CameraFrame, DepthSource, RgbdFrame};
 use crate::geometry::{Iso3, StampedPose};
 use crate::map::{MapStats, ModelSet, ModelView, SurfelSet};
 use crate::registry::{BuildEnv, BuildError, Registry, Stage};
 use crate::stage::{DepthEstimator, Fuser, LoopCloser, LoopInput, Preprocessor, TrackResult, TrackStatus, Tracker};
 
+use front::{Ahead, Front, Pending, Prepared};
 pub use record::{FrameRecord, StageTimes};
+use record::{ms_since, report, stage_err};
 
 /// The built stages, each with its registry name.
 pub struct Stages {
@@ -57,6 +59,8 @@ pub struct Pipeline {
     keep_last: bool,
     /// The last frame, kept for an observer when asked ([`Pipeline::keep_last_frame`]).
     last: Option<LastFrame>,
+    /// The frame pushed last, not processed yet ([`Pipeline::push`]).
+    pending: Option<Pending>,
 }
 
 /// The last processed frame as the stages saw it, kept for an observer (a recording of the
@@ -66,10 +70,6 @@ pub struct LastFrame {
     pub input: crate::image::Rgb8,
     /// The frame after the preprocessors and the depth stage (its image, depth and masks).
     pub frame: RgbdFrame,
-}
-
-fn ms_since(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
 }
 
 impl Pipeline {
@@ -153,6 +153,7 @@ impl Pipeline {
             loop_closures: 0,
             keep_last: false,
             last: None,
+            pending: None,
         }
     }
 
@@ -224,75 +225,76 @@ impl Pipeline {
         self.stages.fuser.1.stable_confidence()
     }
 
-    /// Processes one frame through every stage.
-    pub fn process(&mut self, mut frame: CameraFrame) -> Result<FrameRecord, PipelineError> {
-        let start = Instant::now();
-        let mut rec = FrameRecord::new(frame.index, frame.timestamp_s);
-        if matches!((&self.rig, &frame.views), (Rig::Stereo { .. }, Views::Mono(_))) {
-            return Err(stage_err(frame.index, "input", StageError::invalid_input("the rig is stereo but the frame has one view")));
+    /// Processes one frame through every stage. Frames handed in with [`Pipeline::push`] and
+    /// not yet processed come first: finish them ([`Pipeline::finish`]) before.
+    pub fn process(&mut self, frame: CameraFrame) -> Result<FrameRecord, PipelineError> {
+        if let Some(p) = &self.pending {
+            return Err(PipelineError::Order(format!(
+                "frame {} was pushed and is not processed yet, so frame {} cannot go before it: call `finish` before `process`",
+                p.index(),
+                frame.index
+            )));
         }
-        let input = self.keep_last.then(|| frame.views.reference().clone());
-        self.preprocess(&mut frame, &mut rec)?;
-        let rgbd = self.estimate_depth(frame, &mut rec)?;
+        self.run_frame(Pending::Raw(Box::new(frame)), None)
+    }
+
+    /// Hands in the next frame of a stream; returns the record of the frame pushed before it,
+    /// now processed (`None` for the first frame). The pushed frame is prepared beside that
+    /// frame's fusion and prediction, on the other cores, as far as no stage needs the
+    /// prediction, which does not exist yet: its preprocessing when no preprocessor reads it
+    /// ([`crate::Preprocessor::reads_prediction`]), then its depth and the tracker's
+    /// [`crate::Tracker::prepare`] when the depth estimator does not either; the rest waits
+    /// for its turn. Records, poses and map are those of [`Pipeline::process`] frame by frame.
+    /// A frame's `total_ms` is the wall time of the call that processed it, preparing the next
+    /// frame included; its own preparation is timed in its preprocess, depth and track times.
+    /// On an error the frame pushed with it is dropped too. Call [`Pipeline::finish`] after the
+    /// last frame.
+    pub fn push(&mut self, frame: CameraFrame) -> Option<Result<FrameRecord, PipelineError>> {
+        match self.pending.take() {
+            None => {
+                self.pending = Some(Pending::Raw(Box::new(frame)));
+                None
+            }
+            Some(current) => Some(self.run_frame(current, Some(frame))),
+        }
+    }
+
+    /// Processes the last frame handed in with [`Pipeline::push`], if any.
+    pub fn finish(&mut self) -> Option<Result<FrameRecord, PipelineError>> {
+        self.pending.take().map(|current| self.run_frame(current, None))
+    }
+
+    /// Processes `current` (its preparation done unless it is raw), and prepares `next` beside
+    /// its fusion when the stages allow it; `next` is then pending.
+    fn run_frame(&mut self, current: Pending, next: Option<CameraFrame>) -> Result<FrameRecord, PipelineError> {
+        let start = Instant::now();
+        let mut front = Front { preprocessors: &mut self.stages.preprocessors, depth: &mut self.stages.depth, rig: &self.rig, keep_last: self.keep_last };
+        let prediction = self.prediction.as_ref();
+        let Prepared { frame, mut rec, input } = match current {
+            Pending::Raw(frame) => front.preprocess_kept(*frame, prediction),
+            Pending::Prepared(p) => *p,
+        };
+        let rgbd = match frame? {
+            Ahead::Preprocessed(frame) => front.estimate_depth(frame, &mut rec, prediction)?,
+            Ahead::Rgbd(rgbd) => rgbd,
+        };
         let tr = self.track(&rgbd, &mut rec)?;
         let mut pose = tr.t_world_cam;
+        let mut next = next.map(|f| Pending::Raw(Box::new(f)));
         if tr.status == TrackStatus::Tracked {
             if let Some(warp) = &tr.warp {
                 self.warp_map(rgbd.index, warp, &mut rec)?;
             }
             pose = self.close_loop(&rgbd, pose, &mut rec)?;
-            self.fuse_and_predict(&rgbd, &pose, &mut rec)?;
+            next = self.fuse_and_predict(&rgbd, &pose, &mut rec, next)?;
         }
+        self.pending = next;
         rec.t_world_cam = pose;
         rec.map = self.stages.fuser.1.stats();
         self.trajectory.push(StampedPose { timestamp_s: rgbd.timestamp_s, t_world_cam: pose });
         rec.total_ms = ms_since(start);
         self.last = input.map(|input| LastFrame { input, frame: rgbd });
         Ok(rec)
-    }
-
-    /// Steps 1–2: the preprocessors, in order, on the frame in place.
-    fn preprocess(&mut self, frame: &mut CameraFrame, rec: &mut FrameRecord) -> Result<(), PipelineError> {
-        let t = Instant::now();
-        let idx = frame.index;
-        for (name, p) in &mut self.stages.preprocessors {
-            p.process(frame, &mut Context::new(idx, &self.rig, self.prediction.as_ref(), report(rec, name))).map_err(|e| stage_err(idx, name, e))?;
-        }
-        rec.ms.preprocess = ms_since(t);
-        Ok(())
-    }
-
-    /// Step 3: depth of the reference view, scored against the input's depth when it was
-    /// estimated; the frame becomes what the later stages see.
-    fn estimate_depth(&mut self, frame: CameraFrame, rec: &mut FrameRecord) -> Result<RgbdFrame, PipelineError> {
-        let t = Instant::now();
-        let idx = frame.index;
-        let (dname, depth) = &mut self.stages.depth;
-        let est =
-            depth.estimate(&frame, &mut Context::new(idx, &self.rig, self.prediction.as_ref(), report(rec, dname))).map_err(|e| stage_err(idx, dname, e))?;
-        rec.ms.depth = ms_since(t);
-        if depth.source() == DepthSource::Estimated {
-            rec.depth_abs_rel = frame.depth_m.as_ref().and_then(|truth| depth_error(&est.depth_m, truth, false)).map(|e| e.abs_rel);
-        }
-        let colour = match frame.views {
-            Views::Mono(c) => c,
-            Views::Stereo { left, .. } => left,
-        };
-        Ok(RgbdFrame {
-            depth_source: depth.source(),
-            index: idx,
-            timestamp_s: frame.timestamp_s,
-            colour,
-            depth_m: est.depth_m,
-            depth_confidence: est.confidence,
-            depth_sigma_m: est.sigma_m,
-            depth_sigma_correlation_px: est.sigma_correlation_px,
-            photometry: frame.photometry,
-            albedo: est.albedo,
-            gt_t_world_cam: frame.gt_t_world_cam,
-            masks: frame.masks,
-            derived: Default::default(),
-        })
     }
 
     /// Step 4: the pose, from the last trusted pose (the initial pose before the first).
@@ -367,20 +369,49 @@ impl Pipeline {
     }
 
     /// Step 5: the frame fused at its pose, then the active model predicted there for the next
-    /// frame, which becomes the last trusted pose.
-    fn fuse_and_predict(&mut self, rgbd: &RgbdFrame, pose: &Iso3, rec: &mut FrameRecord) -> Result<(), PipelineError> {
-        let (idx, rig, prediction) = (rgbd.index, &self.rig, self.prediction.as_ref());
-        let (fname, fuser) = &mut self.stages.fuser;
-        let t = Instant::now();
-        rec.fuse = fuser.fuse(rgbd, pose, &mut Context::new(idx, rig, prediction, report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
-        rec.ms.fuse += ms_since(t);
-        let t = Instant::now();
-        let next = fuser.predict(pose, ModelSet::Active, &mut Context::new(idx, rig, prediction, report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
-        rec.ms.predict = ms_since(t);
-        self.prediction = Some(next);
+    /// frame, which becomes the last trusted pose. Beside it, a raw `next` frame is prepared as far
+    /// as no stage reads the prediction: preprocessed when no preprocessor does, its depth
+    /// estimated and the tracker's preparation done when the depth estimator does not either.
+    /// Returns what is then pending.
+    fn fuse_and_predict(&mut self, rgbd: &RgbdFrame, pose: &Iso3, rec: &mut FrameRecord, next: Option<Pending>) -> Result<Option<Pending>, PipelineError> {
+        let preprocess_ahead = self.stages.preprocessors.iter().all(|(_, p)| !p.reads_prediction());
+        let depth_ahead = preprocess_ahead && !self.stages.depth.1.reads_prediction();
+        let Self { stages, rig, prediction, keep_last, .. } = self;
+        let Stages { preprocessors, depth, tracker, fuser, .. } = stages;
+        let mut fuse = |rec: &mut FrameRecord| fuse_then_predict(fuser, rig, prediction.as_ref(), rgbd, pose, rec);
+        let (predicted, next) = match next {
+            Some(Pending::Raw(frame)) if preprocess_ahead => {
+                let mut front = Front { preprocessors, depth, rig, keep_last: *keep_last };
+                let tracker = depth_ahead.then_some(tracker);
+                let (predicted, prepared) = rayon::join(|| fuse(rec), || front.prepare_ahead(*frame, tracker));
+                (predicted, Some(Pending::Prepared(Box::new(prepared))))
+            }
+            next => (fuse(rec), next),
+        };
+        self.prediction = Some(predicted?);
         self.t_world_last = Some(*pose);
-        Ok(())
+        Ok(next)
     }
+}
+
+/// Step 5 on the fuser alone: fuses `rgbd` at `pose` and predicts the active model there.
+fn fuse_then_predict(
+    fuser: &mut (String, Box<dyn Fuser>),
+    rig: &Rig,
+    prediction: Option<&ModelView>,
+    rgbd: &RgbdFrame,
+    pose: &Iso3,
+    rec: &mut FrameRecord,
+) -> Result<ModelView, PipelineError> {
+    let idx = rgbd.index;
+    let (fname, fuser) = fuser;
+    let t = Instant::now();
+    rec.fuse = fuser.fuse(rgbd, pose, &mut Context::new(idx, rig, prediction, report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
+    rec.ms.fuse += ms_since(t);
+    let t = Instant::now();
+    let next = fuser.predict(pose, ModelSet::Active, &mut Context::new(idx, rig, prediction, report(rec, fname))).map_err(|e| stage_err(idx, fname, e))?;
+    rec.ms.predict = ms_since(t);
+    Ok(next)
 }
 
 /// What the pipeline accepts of a tracker's pose: a non-finite pose is a lost frame at the
@@ -405,15 +436,7 @@ fn is_finite(t: &Iso3) -> bool {
     t.translation.vector.iter().chain(t.rotation.coords.iter()).all(|v| v.is_finite())
 }
 
-fn report<'r>(rec: &'r mut FrameRecord, name: &str) -> &'r mut StageReport {
-    rec.reports.entry(name.to_owned()).or_default()
-}
-
 fn merge(into: &mut StageReport, from: StageReport) {
     into.counters.extend(from.counters);
     into.warnings.extend(from.warnings);
-}
-
-fn stage_err(frame: usize, stage: &str, source: StageError) -> PipelineError {
-    PipelineError::Stage { frame, stage: stage.to_owned(), source }
 }

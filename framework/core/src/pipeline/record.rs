@@ -1,8 +1,10 @@
 //! What the pipeline records about each frame.
 
 use std::collections::BTreeMap;
+use std::time::Instant;
 
 use crate::context::StageReport;
+use crate::error::{PipelineError, StageError};
 use crate::geometry::Iso3;
 use crate::map::MapStats;
 use crate::stage::{FuseStats, TrackStatus};
@@ -51,7 +53,9 @@ pub struct FrameRecord {
     pub status: TrackStatus,
     /// Milliseconds per stage.
     pub ms: StageTimes,
-    /// Milliseconds for the whole frame.
+    /// Milliseconds for the whole frame: the wall time of the call that processed it. With frames
+    /// pushed ([`super::Pipeline::push`]) that includes preparing the next frame beside this one's
+    /// fusion, and this frame's own preparation is in its preprocess, depth and track times.
     pub total_ms: f64,
     /// Map counts after the frame.
     pub map: crate::map::MapStats,
@@ -101,4 +105,19 @@ impl FrameRecord {
     pub fn warnings(&self) -> impl Iterator<Item = String> + '_ {
         self.reports.iter().flat_map(|(name, r)| r.warnings.iter().map(move |w| format!("{name}: {w}")))
     }
+}
+
+/// Milliseconds since `t`.
+pub(super) fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// The report of stage `name` in `rec`.
+pub(super) fn report<'r>(rec: &'r mut FrameRecord, name: &str) -> &'r mut StageReport {
+    rec.reports.entry(name.to_owned()).or_default()
+}
+
+/// A stage's error at `frame`.
+pub(super) fn stage_err(frame: usize, stage: &str, source: StageError) -> PipelineError {
+    PipelineError::Stage { frame, stage: stage.to_owned(), source }
 }

@@ -276,6 +276,11 @@ fn solve_levels(
 }
 
 impl DepthEstimator for NearLightSfs {
+    /// With `albedo_source = "map"` only: the map's albedo in the prediction.
+    fn reads_prediction(&self) -> bool {
+        self.params.albedo_source == AlbedoSource::Map
+    }
+
     fn metric_scale(&self) -> bool {
         self.calibrated
     }

@@ -223,6 +223,10 @@ impl StereoSgm {
 }
 
 impl DepthEstimator for StereoSgm {
+    fn reads_prediction(&self) -> bool {
+        false
+    }
+
     fn input_kind(&self) -> ViewKind {
         ViewKind::Stereo
     }

@@ -180,6 +180,10 @@ pub fn solve(e: &GrayF32, valid: &Mask, ps: f64, qs: f64, iterations: u32, form:
 }
 
 impl DepthEstimator for TsaiShah {
+    fn reads_prediction(&self) -> bool {
+        false
+    }
+
     fn estimate(&mut self, frame: &CameraFrame, ctx: &mut Context) -> Result<DepthEstimate, StageError> {
         let p = &self.params;
         let img = frame.views.reference();

@@ -131,6 +131,10 @@ impl Reflection {
 }
 
 impl Preprocessor for Reflection {
+    fn reads_prediction(&self) -> bool {
+        false
+    }
+
     fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
         let ignored = frame.masks.union();
         let (mut published, mut published_right) = (None, None);

@@ -272,6 +272,14 @@ impl Vignetting {
 }
 
 impl Preprocessor for Vignetting {
+    /// Only while it learns the fall-off from the sequence with the map's shading
+    /// (`sequence_model = "shading"`, the first `learn_frames` frames).
+    fn reads_prediction(&self) -> bool {
+        matches!(self.source, FalloffSource::Sequence)
+            && self.params.sequence_model == SequenceModel::Shading
+            && self.learner.frames() < self.params.learn_frames as usize
+    }
+
     fn process(&mut self, frame: &mut CameraFrame, ctx: &mut Context) -> Result<(), StageError> {
         if let Some(w) = self.pending_warning.take() {
             ctx.warn(w);

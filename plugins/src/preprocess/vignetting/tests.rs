@@ -223,6 +223,9 @@ fn the_shading_model_learns_the_fall_off_inside_a_tube_where_the_mean_cannot() {
         let params = VignettingParams { source: Source::Sequence, sequence_model: m, learn_frames: 30, ..VignettingParams::default() };
         Vignetting::new(params, FalloffSource::Sequence)
     });
+    // Only the shading model reads the prediction, and only while it learns: a pipeline may
+    // preprocess the next frame before the prediction exists otherwise.
+    assert_eq!(learners.each_ref().map(|s| s.reads_prediction()), [true, false]);
     for i in (0..300).step_by(10) {
         let f = ph.render(i);
         let normals = crate::common::maps::normal_map(&crate::common::maps::vertex_map(&f.depth_m, &c), 1, 0.002);
@@ -247,6 +250,7 @@ fn the_shading_model_learns_the_fall_off_inside_a_tube_where_the_mean_cannot() {
         }
         rings.iter().filter(|r| r.1 > 0.0).map(|r| (r.0 / r.1 - 1.0).abs()).fold(0.0, f64::max)
     };
+    assert!(!learners[0].reads_prediction(), "learnt from {} frames, still reads the prediction", learners[0].learner.frames());
     let (shading, mean) = (worst(&learners[0]), worst(&learners[1]));
     assert!(shading < 0.03, "shading model: {:.1} % radial bias", shading * 100.0);
     assert!(mean > 0.2, "the mean model should be fooled by the tube ({:.1} %)", mean * 100.0);

@@ -203,6 +203,8 @@ pub struct IcpRgb {
     undivide: Option<Undivide>,
     /// A registration stopped after the coarse levels (`register.rs`).
     unfinished: Option<Box<register::Unfinished>>,
+    /// The next frame's live pyramid, built ahead ([`Tracker::prepare`]), with its frame index.
+    ahead: Option<(usize, Vec<Level>)>,
 }
 
 /// How far the frame's depth is trusted, by its source (measured or estimated).
@@ -220,14 +222,14 @@ impl Plugin for IcpRgb {
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         let (light, missing) = load_light(&params.light_file, env)?;
-        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None, unfinished: None })
+        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None, unfinished: None, ahead: None })
     }
 }
 
 impl IcpRgb {
     /// A tracker with no history (no previous frame, no velocity).
     pub fn new(params: IcpRgbParams) -> Self {
-        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None, unfinished: None }
+        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None, unfinished: None, ahead: None }
     }
 
     /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
@@ -273,6 +275,12 @@ impl Tracker for IcpRgb {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
         Ok(self.register(frame, model, t_world_prev, false, ctx)?.0)
     }
+
+    /// The live frame's pyramid, which needs neither the map nor a pose.
+    fn prepare(&mut self, frame: &RgbdFrame, ctx: &mut Context) {
+        let live = self.build_live_pyramid(frame, ctx);
+        self.ahead = Some((frame.index, live));
+    }
 }
 
 impl IcpRgb {
@@ -290,8 +298,16 @@ impl IcpRgb {
         self.register_pyramid(live, frame.depth_source, model, t_world_prev, initial, register::Stop::Fine, ctx)
     }
 
-    /// The live frame's pyramid as this tracker prepares it (3 levels, finest first).
+    /// The live frame's pyramid as this tracker prepares it (3 levels, finest first): the one
+    /// built ahead for this frame ([`Tracker::prepare`]) if there is one.
     pub(crate) fn live_pyramid(&mut self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {
+        match self.ahead.take() {
+            Some((index, live)) if index == frame.index => live,
+            _ => self.build_live_pyramid(frame, ctx),
+        }
+    }
+
+    fn build_live_pyramid(&mut self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {
         let clock = std::time::Instant::now();
         let cam = ctx.rig.camera();
         // The photometric term relights images as the camera took them: a fall-off a

@@ -207,6 +207,11 @@ impl Tracker for Nonrigid {
             }
         }
     }
+
+    /// The rigid start's live pyramid ([`IcpRgb`]'s).
+    fn prepare(&mut self, frame: &RgbdFrame, ctx: &mut Context) {
+        self.rigid.prepare(frame, ctx);
+    }
 }
 
 /// A solve's result: the tracking result with the warp, none (the rigid pose stands), or an error.
