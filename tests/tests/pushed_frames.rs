@@ -17,13 +17,17 @@ const FRAMES: usize = 48;
 
 /// Preset 4 with a 4 mm wave, NanEye size, 90 frames: the default tracker warps the map on
 /// most of the first 48 (30 of them when written).
-fn phantom(dir: &std::path::Path) {
-    phantom_of(dir, 4, 4.0, 90);
+fn phantom() -> (tempfile::TempDir, std::path::PathBuf) {
+    phantom_of(4, 4.0, 90)
 }
 
-fn phantom_of(dir: &std::path::Path, preset: u8, deform_mm: f64, frames: usize) {
+/// A phantom written into a new temporary folder (kept while the first value lives), and its path.
+fn phantom_of(preset: u8, deform_mm: f64, frames: usize) -> (tempfile::TempDir, std::path::PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
     let spec = PhantomSpec { frames, size: SizePreset::NanEye, deform_mm, ..PhantomSpec::preset(preset) };
-    write_sequence(&Phantom::new(spec).unwrap(), dir, &|_| {}).unwrap();
+    write_sequence(&Phantom::new(spec).unwrap(), &data, &|_| {}).unwrap();
+    (tmp, data)
 }
 
 /// The default pipeline with sensor depth and the probe after its preprocessors.
@@ -74,9 +78,7 @@ fn same_outcome(a: &[FrameRecord], b: &[FrameRecord]) {
 
 #[test]
 fn pushed_frames_are_prepared_beside_the_fusion_and_end_as_frames_processed_one_by_one() {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    phantom(&data);
+    let (_tmp, data) = phantom();
     let (ds, mut one_by_one) = pipeline(&data, &[]);
     let (_, mut streamed) = pipeline(&data, &[]);
     let a = processed(&ds, &mut one_by_one);
@@ -105,9 +107,7 @@ fn pushed_frames_are_prepared_beside_the_fusion_and_end_as_frames_processed_one_
 
 #[test]
 fn a_stage_that_reads_the_prediction_still_gets_it_when_frames_are_pushed() {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    phantom(&data);
+    let (_tmp, data) = phantom();
     let (ds, mut one_by_one) = pipeline(&data, &["reads_prediction=true"]);
     let (_, mut streamed) = pipeline(&data, &["reads_prediction=true"]);
     let a = processed(&ds, &mut one_by_one);
@@ -123,9 +123,7 @@ fn a_depth_stage_that_reads_the_prediction_gets_it_while_the_preprocessors_run_a
     // The default monocular pipeline with the map's albedo: `near-light-sfs` then reads the
     // prediction, so only the preprocessors run beside the fusion. Preset 5 with a 2 mm wave at 120 frames,
     // which it tracks (at 90 frames preset 4 moves too fast for shape from shading).
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    phantom_of(&data, 5, 2.0, 120);
+    let (_tmp, data) = phantom_of(5, 2.0, 120);
     let (ds, mut one_by_one) = pipeline_with(&data, "near-light-sfs", &[]);
     let (_, mut streamed) = pipeline_with(&data, "near-light-sfs", &[]);
     let a: Vec<FrameRecord> = (0..FRAMES / 2).map(|i| one_by_one.process(ds.load(i).unwrap()).unwrap()).collect();
@@ -148,9 +146,7 @@ fn a_depth_stage_that_reads_the_prediction_gets_it_while_the_preprocessors_run_a
 
 #[test]
 fn a_pushed_frame_that_fails_to_prepare_fails_in_its_turn_and_frames_stay_in_order() {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    phantom(&data);
+    let (_tmp, data) = phantom();
     let (ds, mut p) = pipeline(&data, &["fail_at_frame=5"]);
     let mut records = Vec::new();
     let mut failure = None;
