@@ -186,9 +186,10 @@ pub trait Fuser: Send {
     /// An exported copy of the whole map in canonical order (for output and tests; may be
     /// expensive).
     fn snapshot(&self) -> Result<SurfelSet, StageError>;
-    /// The time window δt, frames: a surfel last seen more than δt frames ago is inactive
-    /// (`None`: this fuser keeps every surfel active). A loop closer uses it to tell the two
-    /// models apart in a snapshot.
+    /// The time window δt at the map's current frame, in frames: a surfel last seen more than
+    /// δt frames ago is inactive (`None`: this fuser keeps every surfel active). It may change
+    /// from frame to frame (the surfel fusers shorten it while a tracker's warp says the wall
+    /// moves). A loop closer uses it to tell the two models apart in a snapshot.
     fn active_window(&self) -> Option<u32> {
         None
     }

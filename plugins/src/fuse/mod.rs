@@ -6,3 +6,4 @@ pub mod surfel_cpu;
 pub mod surfel_gpu;
 pub mod surfel_params;
 pub mod surfel_rules;
+pub mod window;

@@ -9,6 +9,13 @@ capsule_slam_framework::plugin_params! {
     pub struct SurfelParams {
         /// Active time window δt: a surfel is active iff now − t ≤ δt (ElasticFusion: 200).
         pub delta_t: u32 = 200; unit = "frames"; range = 1.0..=1.0e7;
+        /// The active window for a surfel last seen before the map's last warp: a tracker's
+        /// warp says the wall moved, and a surfel the camera left then stays where it was seen
+        /// ([`super::window`]). A wall that never moved keeps `delta_t`; `delta_t_moving ≥
+        /// delta_t` turns the rule off. 60 frames (2 s at 30 Hz): the 30-run deforming grid,
+        /// `docs/results/nonrigid.md`, "The active window follows the wall". No ElasticFusion
+        /// counterpart (its map is rigid).
+        pub delta_t_moving: u32 = 60; unit = "frames"; range = 1.0..=1.0e7;
         /// Confidence at which a surfel becomes stable and is predicted (ElasticFusion: 10).
         pub stable_confidence: f32 = 10.0; unit = "-"; range = 0.0..=1.0e6;
         /// Unstable surfels not seen for this long are removed (ElasticFusion: 20).

@@ -3,7 +3,8 @@
 //! colour, confidence, radius, t0 and t; projective association of each measurement against
 //! an index map of the active model (depth gate along the ray, normal gate, the candidate
 //! nearest the pixel ray wins); confidence-weighted averaging; stable surfels at
-//! `stable_confidence`; stale unstable surfels removed; active/inactive split by `delta_t`.
+//! `stable_confidence`; stale unstable surfels removed; active/inactive split by `delta_t`,
+//! shortened to `delta_t_moving` for what the camera left while the wall moved ([`super::window`]).
 //!
 //! Deviations from ElasticFusion, on purpose: every metric gate is an organ-scale parameter;
 //! the confidence normaliser is the image half-diagonal, not 400 px; positions come from the
@@ -21,6 +22,7 @@ use rayon::prelude::*;
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
 use super::surfel_rules::{Layer, Measurement, depth_gate, merge, normal_gate, reactivate, revisit_layer};
+use super::window::ActiveWindow;
 pub use splat::{IndexMap, SplatDepths, predict};
 
 /// The CPU surfel map.
@@ -28,6 +30,7 @@ pub struct SurfelCpu {
     params: SurfelParams,
     surfels: Vec<Surfel>,
     now: u32,
+    window: ActiveWindow,
 }
 
 impl Plugin for SurfelCpu {
@@ -38,7 +41,7 @@ impl Plugin for SurfelCpu {
 
     fn build(params: SurfelParams, _env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
-        Ok(Self { params, surfels: Vec::new(), now: 0 })
+        Ok(Self { params, surfels: Vec::new(), now: 0, window: ActiveWindow::default() })
     }
 }
 
@@ -65,8 +68,9 @@ impl SurfelCpu {
         }
     }
 
-    fn is_active(&self, s: &Surfel, now: u32) -> bool {
-        s.is_active(now, self.params.delta_t)
+    /// The active window at frame `now`, in frames.
+    fn delta_t(&self, now: u32) -> u32 {
+        self.window.frames(now, &self.params)
     }
 
     /// Measurements of one frame and what to do with each.
@@ -77,7 +81,8 @@ impl SurfelCpu {
         let clock = std::time::Instant::now();
         let now = self.now;
         let (stable, revisit) = (p.stable_confidence, p.revisit_reactivation);
-        let layer = |s: &Surfel| revisit_layer(self.is_active(s, now), s.confidence >= stable, revisit);
+        let dt = self.delta_t(now);
+        let layer = |s: &Surfel| revisit_layer(s.is_active(now, dt), s.confidence >= stable, revisit);
         let index = IndexMap::render(&self.surfels, layer, cam, t_world_cam, p.max_depth_m);
         ctx.count("ms_index_map", clock.elapsed().as_secs_f64() * 1e3);
         let (w, h) = (cam.width, cam.height);
@@ -95,7 +100,7 @@ impl SurfelCpu {
                             continue;
                         }
                         let (pc, nm) = (index.p_cam[k], index.n_cam[k]);
-                        let layer = if self.is_active(&self.surfels[i as usize], now) { Layer::First } else { Layer::Behind };
+                        let layer = if self.surfels[i as usize].is_active(now, dt) { Layer::First } else { Layer::Behind };
                         let gate = if layer == Layer::First { p.depth_gate_m } else { p.revisit_gate_m };
                         if !depth_gate(pc.z, pm.z_live_m, pm.lambda, gate) || !normal_gate(&nm, &n, p.normal_gate_rad, p.normal_bypass_nz) {
                             continue;
@@ -155,7 +160,7 @@ impl Fuser for SurfelCpu {
 
     fn predict(&mut self, t_world_cam: &Iso3, set: ModelSet, ctx: &mut Context) -> Result<ModelView, StageError> {
         let now = (ctx.frame_index as u32).max(self.now);
-        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
+        let (stable, dt) = (self.params.stable_confidence, self.delta_t(now));
         let include = |s: &Surfel| s.confidence >= stable && (s.is_active(now, dt) == (set == ModelSet::Active));
         Ok(predict(&self.surfels, include, ctx.rig.camera(), t_world_cam, &SplatDepths::of(&self.params)))
     }
@@ -166,7 +171,8 @@ impl Fuser for SurfelCpu {
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         // Reactivate the stable inactive surfels seen from the corrected pose.
         let now = (ctx.frame_index as u32).max(self.now);
-        let reactivated = reactivate(&mut self.surfels, &closure.t_world_cam, ctx.rig.camera(), now, &self.params);
+        let params = self.window.params_at(now, &self.params);
+        let reactivated = reactivate(&mut self.surfels, &closure.t_world_cam, ctx.rig.camera(), now, &params);
         ctx.count("surfels_reactivated", reactivated as f64);
         Ok(())
     }
@@ -174,12 +180,13 @@ impl Fuser for SurfelCpu {
     fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
         let clock = std::time::Instant::now();
         self.warp_surfels(deformation, true);
+        self.window.warped(ctx.frame_index as u32);
         ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }
 
     fn stats(&self) -> MapStats {
-        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
+        let (stable, dt) = (self.params.stable_confidence, self.delta_t(self.now));
         MapStats {
             total: self.surfels.len(),
             active: self.surfels.iter().filter(|s| s.is_active(self.now, dt)).count(),
@@ -192,7 +199,7 @@ impl Fuser for SurfelCpu {
     }
 
     fn active_window(&self) -> Option<u32> {
-        Some(self.params.delta_t)
+        Some(self.delta_t(self.now))
     }
 
     fn stable_confidence(&self) -> Option<f32> {

@@ -84,6 +84,50 @@ fn the_active_split_follows_delta_t_and_stale_unstable_surfels_go() {
     assert_eq!(u.stats().total, 0, "21 frames unseen: removed");
 }
 
+/// A deformation that moves nothing: a tracker's warp of a wall that moved too little to see.
+fn still_warp() -> capsule_slam_framework::deformation::Deformation {
+    use capsule_slam_framework::deformation::{Deformation, DeformationNode, Window};
+    Deformation::new(vec![DeformationNode::identity(nalgebra::Point3::new(0.0, 0.0, 0.05), 0)], 4, Window::All)
+}
+
+#[test]
+fn a_warp_shortens_the_active_window_of_what_the_camera_left_before_it() {
+    let ph = phantom(1, 10, 0.0);
+    let rig = rig(&ph);
+    let f = rgbd(&ph, 0);
+    let pose = f.gt_t_world_cam.unwrap();
+    let p = SurfelParams { stable_confidence: 0.0, delta_t: 100, delta_t_moving: 30, subsample: 1, ..SurfelParams::default() };
+    let mut r = StageReport::default();
+    let valid = |s: &mut SurfelCpu, now: usize, set| {
+        let mut r = StageReport::default();
+        s.predict(&pose, set, &mut Context::new(now, &rig, None, &mut r)).unwrap().valid_pixels()
+    };
+    // A wall that never moved: the map seen at frame 0 is active up to frame 100.
+    let mut still = fuser(p.clone(), &ph);
+    let first = still.fuse(&f, &pose, &mut Context::new(0, &rig, None, &mut r)).unwrap();
+    assert!(valid(&mut still, 60, ModelSet::Active) > 1000);
+    assert_eq!(still.active_window(), Some(100));
+
+    // The wall moved at frame 5 (a warp): the map seen before it is active for 30 frames only.
+    let mut moving = fuser(p, &ph);
+    moving.fuse(&f, &pose, &mut Context::new(0, &rig, None, &mut r)).unwrap();
+    moving.warp(&still_warp(), &mut Context::new(5, &rig, None, &mut r)).unwrap();
+    assert!(valid(&mut moving, 30, ModelSet::Active) > 1000);
+    assert_eq!(valid(&mut moving, 31, ModelSet::Active), 0);
+    assert!(valid(&mut moving, 31, ModelSet::Inactive) > 1000);
+    // It does not come back as the window grows back: the window stays below its age.
+    assert_eq!(valid(&mut moving, 99, ModelSet::Active), 0);
+    // Seen again at frame 60, it merges (a revisit), becomes active, and keeps the whole window
+    // from there (the wall was last seen to move before frame 60).
+    let mut back = f.clone();
+    back.index = 60;
+    let again = moving.fuse(&back, &pose, &mut Context::new(60, &rig, None, &mut r)).unwrap();
+    assert_eq!((again.added, again.merged), (0, first.added), "{again:?}");
+    assert_eq!(moving.stats().active, first.added);
+    assert!(valid(&mut moving, 155, ModelSet::Active) > 1000);
+    assert_eq!(moving.active_window(), Some(55), "60 − 5 frames since the wall last moved");
+}
+
 #[test]
 fn a_revisited_wall_merges_into_its_inactive_surfels_and_reactivates_them() {
     let ph = phantom(1, 10, 0.0);

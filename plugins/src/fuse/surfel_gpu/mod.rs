@@ -26,6 +26,7 @@ use rayon::prelude::*;
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
 use super::surfel_rules::reactivate;
+use super::window::ActiveWindow;
 use device::{DeviceMap, Phase, gpu_error};
 use layout::GpuMeasurement;
 
@@ -35,6 +36,7 @@ pub struct SurfelGpu {
     map: DeviceMap,
     now: u32,
     stats: MapStats,
+    window: ActiveWindow,
 }
 
 impl Plugin for SurfelGpu {
@@ -56,7 +58,7 @@ impl SurfelGpu {
         let cam = env.rig.camera();
         let cap = cap.unwrap_or_else(|| (4 * cam.width * cam.height).max(1024) as u32);
         let map = DeviceMap::with_capacity(gpu, cam.width, cam.height, cap)?;
-        Ok(Self { params, map, now: 0, stats: MapStats::default() })
+        Ok(Self { params, map, now: 0, stats: MapStats::default(), window: ActiveWindow::default() })
     }
 
     /// The device's name and backend (e.g. "llvmpipe (LLVM 15.0.6, 256 bits), Vulkan").
@@ -67,7 +69,7 @@ impl SurfelGpu {
     /// Warps the map on the host (download, `d`, then `then`, upload) and recounts it: a
     /// deformation's influences need a k-d tree, and a warp is one pass over the map. With
     /// `motion` (a tracker's warp) the displacement is added to each surfel's `warp_m`.
-    fn rewrite(&mut self, d: &Deformation, motion: bool, then: impl FnOnce(&mut [Surfel], &SurfelParams)) -> Result<(), StageError> {
+    fn rewrite(&mut self, d: &Deformation, motion: bool, then: impl FnOnce(&mut [Surfel])) -> Result<(), StageError> {
         let mut surfels = self.map.download()?;
         let warper = d.warper();
         if motion {
@@ -75,9 +77,9 @@ impl SurfelGpu {
         } else {
             surfels.par_iter_mut().for_each(|s| warper.warp_surfel(s));
         }
-        then(&mut surfels, &self.params);
+        then(&mut surfels);
         self.map.upload(&surfels)?;
-        let (stable, dt) = (self.params.stable_confidence, self.params.delta_t);
+        let (stable, dt) = (self.params.stable_confidence, self.window.frames(self.now, &self.params));
         self.stats = MapStats {
             total: surfels.len(),
             active: surfels.iter().filter(|s| s.is_active(self.now, dt)).count(),
@@ -87,7 +89,7 @@ impl SurfelGpu {
     }
 
     fn phase(&self, t_world_cam: &Iso3, now: u32, set: ModelSet) -> Phase {
-        Phase { t_cam_world: t_world_cam.inverse(), now, set, params: self.params.clone() }
+        Phase { t_cam_world: t_world_cam.inverse(), now, set, params: self.window.params_at(now, &self.params) }
     }
 }
 
@@ -125,7 +127,8 @@ impl Fuser for SurfelGpu {
         let clock = std::time::Instant::now();
         let now = (ctx.frame_index as u32).max(self.now);
         let mut reactivated = 0;
-        self.rewrite(&closure.deformation, false, |surfels, params| reactivated = reactivate(surfels, &closure.t_world_cam, ctx.rig.camera(), now, params))?;
+        let params = self.window.params_at(now, &self.params);
+        self.rewrite(&closure.deformation, false, |surfels| reactivated = reactivate(surfels, &closure.t_world_cam, ctx.rig.camera(), now, &params))?;
         ctx.count("ms_deform", clock.elapsed().as_secs_f64() * 1e3);
         ctx.count("surfels_reactivated", reactivated as f64);
         Ok(())
@@ -133,7 +136,8 @@ impl Fuser for SurfelGpu {
 
     fn warp(&mut self, deformation: &Deformation, ctx: &mut Context) -> Result<(), StageError> {
         let clock = std::time::Instant::now();
-        self.rewrite(deformation, true, |_, _| {})?;
+        self.window.warped(ctx.frame_index as u32);
+        self.rewrite(deformation, true, |_| {})?;
         ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
         Ok(())
     }
@@ -147,7 +151,7 @@ impl Fuser for SurfelGpu {
     }
 
     fn active_window(&self) -> Option<u32> {
-        Some(self.params.delta_t)
+        Some(self.window.frames(self.now, &self.params))
     }
 
     fn stable_confidence(&self) -> Option<f32> {

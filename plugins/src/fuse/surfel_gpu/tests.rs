@@ -179,6 +179,46 @@ fn a_revisit_reactivates_the_same_surfels_on_both() {
 }
 
 #[test]
+fn a_warp_shortens_the_active_window_alike_on_both() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("a_warp_shortens_the_active_window_alike_on_both").is_none() {
+        return;
+    }
+    // Frames 0..16 at their true poses, the wall said to move at frame 10 (a warp that moves
+    // nothing): at frame 15 the window is 5 frames (15 − 10), not δt = 8, on both maps.
+    let ph = phantom(2, 16, 0.0);
+    let run = |p: SurfelParams| {
+        let (mut g, mut c) = builders_with(&ph, None, &gpu, p);
+        fuse_both(&ph, &mut g, &mut c, 10, false);
+        let (rig, mut r) = (rig(&ph), StageReport::default());
+        let nodes = vec![DeformationNode::identity(Point3::new(0.0, 0.0, 0.05), 0)];
+        let warp = Deformation::new(nodes, 4, Window::All);
+        g.warp(&warp, &mut Context::new(10, &rig, None, &mut r)).unwrap();
+        c.warp(&warp, &mut Context::new(10, &rig, None, &mut r)).unwrap();
+        for i in 10..16 {
+            let f = rgbd(&ph, i);
+            let pose = f.gt_t_world_cam.unwrap();
+            g.fuse(&f, &pose, &mut Context::new(i, &rig, None, &mut r)).unwrap();
+            c.fuse(&f, &pose, &mut Context::new(i, &rig, None, &mut r)).unwrap();
+        }
+        (g, c)
+    };
+    let (mut g, mut c) = run(SurfelParams { delta_t_moving: 2, ..params() });
+    assert_eq!((g.active_window(), c.active_window()), (Some(5), Some(5)));
+    let (a, b) = (g.stats(), c.stats());
+    assert!(a.active.abs_diff(b.active) * 1000 <= b.active, "gpu {a:?}, cpu {b:?}");
+    // Without the rule (δt_moving ≥ δt) more of the map is active.
+    let (_, plain) = run(params());
+    assert_eq!(plain.active_window(), Some(8));
+    assert!(b.active < plain.stats().active, "{b:?} with the rule, {:?} without", plain.stats());
+    for (set, pose_frame) in [(ModelSet::Active, 15), (ModelSet::Inactive, 8)] {
+        let (share, filled) = prediction_agreement(&ph, (&mut g, &mut c), set, (pose_frame, 15));
+        assert!(filled > 500, "{set:?}: the CPU prediction has only {filled} pixels");
+        assert!(share > 0.998, "{set:?}: only {:.2} % of the pixels agree", 100.0 * share);
+    }
+}
+
+#[test]
 fn elasticfusions_nearest_wins_splat_is_the_same_on_both() {
     let gpu = GpuHandle::new();
     if gpu.get_or_skip("elasticfusions_nearest_wins_splat_is_the_same_on_both").is_none() {
