@@ -30,13 +30,13 @@ fn frame(ph: &Phantom, i: usize) -> capsule_slam_framework::frame::RgbdFrame {
     f
 }
 
-/// Fuses frames `0..n` at their true poses into both fusers, with a depth σ per pixel if
+/// Fuses `frames` at their true poses into both fusers, with a depth σ per pixel if
 /// `sigma` (the map then weighs by it; f32 division and square root differ by an ulp between
 /// the devices, so the tests of deformation, whose gates are tight, fuse without).
-fn fuse_both(ph: &Phantom, g: &mut dyn Fuser, c: &mut dyn Fuser, n: usize, sigma: bool) {
+fn fuse_both(ph: &Phantom, g: &mut dyn Fuser, c: &mut dyn Fuser, frames: std::ops::Range<usize>, sigma: bool) {
     let rig = rig(ph);
     let mut r = StageReport::default();
-    for i in 0..n {
+    for i in frames {
         let f = if sigma { frame(ph, i) } else { rgbd(ph, i) };
         let pose = f.gt_t_world_cam.unwrap();
         let a = g.fuse(&f, &pose, &mut Context::new(i, &rig, None, &mut r)).unwrap();
@@ -120,7 +120,7 @@ fn the_gpu_map_and_its_predictions_equal_the_cpu_ones() {
     let ph = phantom(2, 24, 0.0);
     // Room for 1 000 surfels at first: the map grows on the device many times.
     let (mut g, mut c) = builders(&ph, Some(1000), &gpu);
-    fuse_both(&ph, &mut g, &mut c, 24, true);
+    fuse_both(&ph, &mut g, &mut c, 0..24, true);
     let (sg, sc) = (g.snapshot().unwrap().surfels, c.snapshot().unwrap().surfels);
     let share = agreement(&sg, &sc);
     // Measured: every surfel (34 000) agrees.
@@ -148,7 +148,7 @@ fn a_revisit_reactivates_the_same_surfels_on_both() {
     let p = SurfelParams { delta_t: 3, ..params() };
     let forth_and_back = |p: SurfelParams| {
         let (mut g, mut c) = builders_with(&ph, None, &gpu, p);
-        fuse_both(&ph, &mut g, &mut c, 12, false);
+        fuse_both(&ph, &mut g, &mut c, 0..12, false);
         let (rig, mut r) = (rig(&ph), StageReport::default());
         for k in 12..24 {
             let mut f = rgbd(&ph, 23 - k);
@@ -189,18 +189,13 @@ fn a_warp_shortens_the_active_window_alike_on_both() {
     let ph = phantom(2, 16, 0.0);
     let run = |p: SurfelParams| {
         let (mut g, mut c) = builders_with(&ph, None, &gpu, p);
-        fuse_both(&ph, &mut g, &mut c, 10, false);
+        fuse_both(&ph, &mut g, &mut c, 0..10, false);
         let (rig, mut r) = (rig(&ph), StageReport::default());
         let nodes = vec![DeformationNode::identity(Point3::new(0.0, 0.0, 0.05), 0)];
         let warp = Deformation::new(nodes, 4, Window::All);
         g.warp(&warp, &mut Context::new(10, &rig, None, &mut r)).unwrap();
         c.warp(&warp, &mut Context::new(10, &rig, None, &mut r)).unwrap();
-        for i in 10..16 {
-            let f = rgbd(&ph, i);
-            let pose = f.gt_t_world_cam.unwrap();
-            g.fuse(&f, &pose, &mut Context::new(i, &rig, None, &mut r)).unwrap();
-            c.fuse(&f, &pose, &mut Context::new(i, &rig, None, &mut r)).unwrap();
-        }
+        fuse_both(&ph, &mut g, &mut c, 10..16, false);
         (g, c)
     };
     let (mut g, mut c) = run(SurfelParams { delta_t_moving: 2, ..params() });
@@ -226,7 +221,7 @@ fn elasticfusions_nearest_wins_splat_is_the_same_on_both() {
     }
     let ph = phantom(2, 12, 0.0005);
     let (mut g, mut c) = builders_with(&ph, None, &gpu, SurfelParams { splat_blend_depth_m: 0.0, ..params() });
-    fuse_both(&ph, &mut g, &mut c, 12, false);
+    fuse_both(&ph, &mut g, &mut c, 0..12, false);
     let (share, filled) = prediction_agreement(&ph, (&mut g, &mut c), ModelSet::Active, (11, 11));
     assert!(filled > 500 && share > 0.998, "{filled} pixels, {:.2} % agree", 100.0 * share);
 }
@@ -240,7 +235,7 @@ fn the_same_frames_give_the_same_map_every_time() {
     let ph = phantom(1, 12, 0.0005);
     let run = || {
         let (mut g, mut c) = builders(&ph, None, &gpu);
-        fuse_both(&ph, &mut g, &mut c, 12, true);
+        fuse_both(&ph, &mut g, &mut c, 0..12, true);
         g.snapshot().unwrap().surfels
     };
     let (a, b) = (run(), run());
@@ -256,7 +251,7 @@ fn a_closure_moves_the_gpu_map_like_the_cpu_map_and_reactivates_it() {
     }
     let ph = phantom(2, 20, 0.0);
     let (mut g, mut c) = builders(&ph, None, &gpu);
-    fuse_both(&ph, &mut g, &mut c, 20, false);
+    fuse_both(&ph, &mut g, &mut c, 0..20, false);
     // A rigid correction expressed per node: R (v − g) + g + t with t = R g + s − g.
     let rot = Rotation3::from_euler_angles(0.01, -0.02, 0.015);
     let shift = Vector3::new(0.0005, -0.0003, 0.0008);
@@ -314,7 +309,7 @@ fn a_trackers_warp_moves_both_maps_alike_and_nothing_else() {
     }
     let ph = phantom(2, 20, 0.0);
     let (mut g, mut c) = builders(&ph, None, &gpu);
-    fuse_both(&ph, &mut g, &mut c, 20, false);
+    fuse_both(&ph, &mut g, &mut c, 0..20, false);
     // A smooth, non-rigid warp: nodes on a 3 × 3 × 3 grid, each pushed along z by up to 1 mm
     // with x, as a wave would push the wall.
     let nodes = (0..27)
