@@ -34,7 +34,8 @@ capsule_slam_framework::plugin_params! {
         /// ElasticFusion reactivates only after a loop closure, so a capsule that returns to a
         /// wall it left more than `delta_t` frames ago lays a second map over the first, and
         /// the map grows on every pass (issue 18, `docs/results/long-runs.md`); `false` is
-        /// ElasticFusion's rule.
+        /// ElasticFusion's rule. Only surfels last seen since the map's last warp are revived:
+        /// what the wall moved away from is a stale phase ([`super::window`]).
         pub revisit_reactivation: bool = true; unit = "-";
         /// The depth gate of a revisit (an inactive surfel's), along the ray, widened by the
         /// pixel's σ as `depth_gate_m` is: tighter than `depth_gate_m`, because an inactive

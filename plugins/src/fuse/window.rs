@@ -14,6 +14,11 @@
 //! `clamp(now − last_warp, delta_t_moving, delta_t)` frames: it is `delta_t` on a wall that
 //! never moved (every rigid input is unchanged), `delta_t_moving` while it moves, and it grows
 //! back by one frame per frame once the wall is still, so no stale surface returns at once.
+//!
+//! For the same reason a revisit (`revisit_reactivation`) brings back only what was last seen
+//! since the map's last warp: a measurement merged into a surfel the wall has moved away from
+//! would be held at the stale phase by that surfel's confidence, and the stale surface would
+//! be active again.
 
 use super::surfel_params::SurfelParams;
 
@@ -35,6 +40,17 @@ impl ActiveWindow {
             None => p.delta_t,
             Some(t) => now.saturating_sub(t).clamp(p.delta_t_moving.min(p.delta_t), p.delta_t),
         }
+    }
+
+    /// Whether a surfel last seen at frame `t` may be reactivated by a revisit: the wall has
+    /// not moved since (no warp after `t`; a warp at `t` came before that frame's fusion).
+    pub fn revisits(&self, t: u32) -> bool {
+        t >= self.revisit_after()
+    }
+
+    /// The first frame of a last sighting that [`Self::revisits`] accepts (0 before any warp).
+    pub fn revisit_after(&self) -> u32 {
+        self.last_warp.unwrap_or(0)
     }
 
     /// `p` with `delta_t` replaced by the window at frame `now` (what the GPU kernels read).
@@ -93,5 +109,17 @@ mod tests {
         assert_eq!(w.frames(60, &params(200, 200)), 200);
         assert_eq!(w.frames(60, &params(30, 60)), 30);
         assert_eq!(w.params_at(60, &params(200, 60)).delta_t, 60);
+    }
+
+    #[test]
+    fn a_revisit_brings_back_only_what_was_seen_since_the_wall_last_moved() {
+        let mut w = ActiveWindow::default();
+        assert!(w.revisits(0) && w.revisits(7), "a wall that never moved: every surfel");
+        w.warped(40);
+        assert!(!w.revisits(39));
+        assert!(w.revisits(40) && w.revisits(41), "the warp of frame 40 came before its fusion");
+        w.warped(90);
+        assert!(!w.revisits(60));
+        assert_eq!(w.revisit_after(), 90);
     }
 }

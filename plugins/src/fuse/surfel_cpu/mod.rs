@@ -82,7 +82,8 @@ impl SurfelCpu {
         let now = self.now;
         let (stable, revisit) = (p.stable_confidence, p.revisit_reactivation);
         let dt = self.delta_t(now);
-        let layer = |s: &Surfel| revisit_layer(s.is_active(now, dt), s.confidence >= stable, revisit);
+        let window = self.window;
+        let layer = |s: &Surfel| revisit_layer(s.is_active(now, dt), s.confidence >= stable, revisit && window.revisits(s.t));
         let index = IndexMap::render(&self.surfels, layer, cam, t_world_cam, p.max_depth_m);
         ctx.count("ms_index_map", clock.elapsed().as_secs_f64() * 1e3);
         let (w, h) = (cam.width, cam.height);

@@ -117,15 +117,30 @@ fn a_warp_shortens_the_active_window_of_what_the_camera_left_before_it() {
     assert!(valid(&mut moving, 31, ModelSet::Inactive) > 1000);
     // It does not come back as the window grows back: the window stays below its age.
     assert_eq!(valid(&mut moving, 99, ModelSet::Active), 0);
-    // Seen again at frame 60, it merges (a revisit), becomes active, and keeps the whole window
-    // from there (the wall was last seen to move before frame 60).
+    // Seen again at frame 60, it is not revived (the wall moved since it was seen): the frame
+    // lays new surfels, which keep the whole window from there.
     let mut back = f.clone();
     back.index = 60;
     let again = moving.fuse(&back, &pose, &mut Context::new(60, &rig, None, &mut r)).unwrap();
-    assert_eq!((again.added, again.merged), (0, first.added), "{again:?}");
+    assert_eq!((again.added, again.merged), (first.added, 0), "{again:?}");
     assert_eq!(moving.stats().active, first.added);
+    assert!(moving.surfels()[..first.added].iter().all(|s| s.t == 0), "the stale surface stays as it was");
     assert!(valid(&mut moving, 155, ModelSet::Active) > 1000);
     assert_eq!(moving.active_window(), Some(55), "60 − 5 frames since the wall last moved");
+
+    // What was seen after the last warp is revived by a revisit: seen at 6, again at 200.
+    let mut after = fuser(SurfelParams { stable_confidence: 0.0, delta_t: 100, delta_t_moving: 30, subsample: 1, ..SurfelParams::default() }, &ph);
+    let mut seen = |s: &mut SurfelCpu, i: usize| {
+        let mut g = f.clone();
+        g.index = i;
+        s.fuse(&g, &pose, &mut Context::new(i, &rig, None, &mut r)).unwrap()
+    };
+    seen(&mut after, 0);
+    after.warp(&still_warp(), &mut Context::new(5, &rig, None, &mut StageReport::default())).unwrap();
+    seen(&mut after, 6);
+    assert_eq!(valid(&mut after, 200, ModelSet::Active), 0, "inactive by frame 200");
+    let revisit = seen(&mut after, 200);
+    assert_eq!((revisit.added, revisit.merged), (0, first.added), "{revisit:?}");
 }
 
 #[test]

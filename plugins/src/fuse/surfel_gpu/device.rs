@@ -26,6 +26,9 @@ pub struct Phase {
     pub set: ModelSet,
     /// The fuser's parameters.
     pub params: SurfelParams,
+    /// A revisit reactivates only surfels last seen at or after this frame
+    /// (`window::ActiveWindow::revisit_after`).
+    pub revisit_after: u32,
 }
 
 /// The counts a fuse reads back.
@@ -217,7 +220,8 @@ impl DeviceMap {
             blend: p.splat_blend_depth_m,
             revisit: u32::from(p.revisit_reactivation),
             revisit_gate: p.revisit_gate_m,
-            pad: [0; 2],
+            revisit_after: phase.revisit_after,
+            pad: 0,
         }
     }
 

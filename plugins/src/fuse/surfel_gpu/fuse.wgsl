@@ -59,7 +59,7 @@ struct Params {
     stable: f32, min_depth: f32, max_depth: f32, depth_gate: f32,
     normal_gate: f32, bypass_nz: f32, radius_ratio: f32, scan_base: u32,
     scan_n: u32, scan_slot: u32, add_base: u32, blend: f32,
-    revisit: u32, revisit_gate: f32, pad0: u32, pad1: u32,
+    revisit: u32, revisit_gate: f32, revisit_after: u32, pad1: u32,
 }
 
 const EMPTY: u32 = 0xffffffffu;
@@ -116,10 +116,11 @@ fn clear_z(@builtin(global_invocation_id) g: vec3<u32>) {
 }
 
 // The index map (surfel_cpu::IndexMap::render): active surfels as 1-pixel points and, with
-// P.revisit, stable inactive ones behind them (surfel_rules::revisit_layer).
+// P.revisit, stable inactive ones last seen since the map's last warp behind them
+// (surfel_rules::revisit_layer, window::ActiveWindow::revisits).
 fn index_pixel(i: u32) -> i32 {
     let s = surf_a[i];
-    if (!is_active(s) && !(P.revisit != 0u && s.conf >= P.stable)) { return -1; }
+    if (!is_active(s) && !(P.revisit != 0u && s.conf >= P.stable && s.t >= P.revisit_after)) { return -1; }
     let p = to_cam(s.pos);
     if (p.z <= 0.0 || p.z > P.max_depth) { return -1; }
     let u = round_pos(P.fx * p.x / p.z + P.cx);

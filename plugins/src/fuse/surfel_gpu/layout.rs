@@ -154,5 +154,7 @@ pub struct Uniforms {
     /// `revisit_reactivation` (0 or 1).
     pub revisit: u32,
     pub revisit_gate: f32,
-    pub pad: [u32; 2],
+    /// A revisit reactivates only surfels last seen at or after this frame.
+    pub revisit_after: u32,
+    pub pad: u32,
 }
