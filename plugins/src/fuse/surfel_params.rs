@@ -11,7 +11,7 @@ capsule_slam_framework::plugin_params! {
         pub delta_t: u32 = 200; unit = "frames"; range = 1.0..=1.0e7;
         /// The active window for a surfel last seen before the map's last warp: a tracker's
         /// warp says the wall moved, and a surfel the camera left then stays where it was seen
-        /// ([`super::window`]). A wall that never moved keeps `delta_t`; `delta_t_moving ≥
+        /// (`plugins/src/fuse/window.rs`). A wall that never moved keeps `delta_t`; `delta_t_moving ≥
         /// delta_t` turns the rule off. 60 frames (2 s at 30 Hz): the 30-run deforming grid,
         /// `docs/results/nonrigid.md`, "The active window follows the wall". No ElasticFusion
         /// counterpart (its map is rigid).
@@ -35,7 +35,7 @@ capsule_slam_framework::plugin_params! {
         /// wall it left more than `delta_t` frames ago lays a second map over the first, and
         /// the map grows on every pass (issue 18, `docs/results/long-runs.md`); `false` is
         /// ElasticFusion's rule. Only surfels last seen since the map's last warp are revived:
-        /// what the wall moved away from is a stale phase ([`super::window`]).
+        /// what the wall moved away from is a stale phase (`plugins/src/fuse/window.rs`).
         pub revisit_reactivation: bool = true; unit = "-";
         /// The depth gate of a revisit (an inactive surfel's), along the ray, widened by the
         /// pixel's σ as `depth_gate_m` is: tighter than `depth_gate_m`, because an inactive

@@ -53,7 +53,7 @@ impl ActiveWindow {
         self.last_warp.unwrap_or(0)
     }
 
-    /// `p` with `delta_t` replaced by the window at frame `now` (what the GPU kernels read).
+    /// `p` with `delta_t` replaced by the window at frame `now` (for a closure's reactivation).
     pub fn params_at(&self, now: u32, p: &SurfelParams) -> SurfelParams {
         SurfelParams { delta_t: self.frames(now, p), ..p.clone() }
     }

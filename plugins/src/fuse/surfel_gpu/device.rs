@@ -10,6 +10,7 @@ use capsule_slam_gpu::Gpu;
 use super::kernels::{COUNTER_SLOTS, Kernel, Kernels, Slot, WORKGROUP, compile};
 use super::layout::{GpuMeasurement, GpuSurfel, Uniforms, ViewPixel, unpack_colour};
 use crate::fuse::surfel_params::SurfelParams;
+use crate::fuse::window::ActiveWindow;
 
 /// A [`StageError::Gpu`].
 pub fn gpu_error(message: impl Into<String>) -> StageError {
@@ -26,9 +27,8 @@ pub struct Phase {
     pub set: ModelSet,
     /// The fuser's parameters.
     pub params: SurfelParams,
-    /// A revisit reactivates only surfels last seen at or after this frame
-    /// (`window::ActiveWindow::revisit_after`).
-    pub revisit_after: u32,
+    /// The map's last warp: the active window at `now` and which surfels a revisit revives.
+    pub window: ActiveWindow,
 }
 
 /// The counts a fuse reads back.
@@ -203,7 +203,7 @@ impl DeviceMap {
             n_surfels: self.n,
             n_meas: 0,
             now: phase.now,
-            delta_t: p.delta_t,
+            delta_t: phase.window.frames(phase.now, p),
             life: p.unstable_lifetime,
             set: u32::from(phase.set != ModelSet::Active),
             stable: p.stable_confidence,
@@ -220,7 +220,7 @@ impl DeviceMap {
             blend: p.splat_blend_depth_m,
             revisit: u32::from(p.revisit_reactivation),
             revisit_gate: p.revisit_gate_m,
-            revisit_after: phase.revisit_after,
+            revisit_after: phase.window.revisit_after(),
             pad: 0,
         }
     }

@@ -89,7 +89,7 @@ impl SurfelGpu {
     }
 
     fn phase(&self, t_world_cam: &Iso3, now: u32, set: ModelSet) -> Phase {
-        Phase { t_cam_world: t_world_cam.inverse(), now, set, params: self.window.params_at(now, &self.params), revisit_after: self.window.revisit_after() }
+        Phase { t_cam_world: t_world_cam.inverse(), now, set, params: self.params.clone(), window: self.window }
     }
 }
 
