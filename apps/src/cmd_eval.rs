@@ -77,7 +77,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         let map = ply::read_surfels(map).context("reading the map")?;
         let now = ply::read_surfels(live).with_context(|| format!("reading the true surface {}", live.display()))?;
         let last = args.last_frame.or_else(|| map.surfels.iter().map(|s| s.t).max()).unwrap_or(0);
-        let live_figures = evaluate_live(&est, &gt, &map, &now, last, &opts);
+        // The sequence's camera (beside the true surfaces) splits the live surfels by the last
+        // frame's view; without one the split is left out.
+        let dir = live.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+        let camera_toml = dir.join("camera.toml");
+        let camera = if camera_toml.exists() {
+            Some(capsule_slam_framework::files::read_camera_file(&camera_toml).with_context(|| format!("reading {}", camera_toml.display()))?.camera())
+        } else {
+            eprintln!("warning: no {}: the live surface is not split by the last frame's view", camera_toml.display());
+            None
+        };
+        let live_figures = evaluate_live(&est, &gt, &map, &now, last, camera.as_ref(), &opts);
         if live_figures.is_empty() {
             bail!("no surfel of the map was seen in the 30 frames up to frame {last}; give --last-frame");
         }

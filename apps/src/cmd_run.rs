@@ -240,6 +240,18 @@ fn print_summary(summary: &Summary, depth_source: DepthSource) {
             p95 * 1e3,
             EvalOptions::default().live_window_frames
         );
+        if let (Some(seen), Some(left), Some(n_left)) = (
+            summary.metrics.get("live_surface_in_view_rmse_m"),
+            summary.metrics.get("live_surface_left_rmse_m"),
+            summary.metrics.get("live_surface_left_points"),
+        ) {
+            println!(
+                "                  {:.3} mm RMSE on those in the last frame's view, {:.3} on the {:.0} the camera left beside or behind it",
+                seen * 1e3,
+                left * 1e3,
+                n_left
+            );
+        }
         if let Some(local) = summary.metrics.get("live_surface_local_rmse_m") {
             println!("                  {:.3} mm RMSE aligned on the poses of those frames alone (without the drift before them)", local * 1e3);
         }

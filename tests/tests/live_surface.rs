@@ -42,6 +42,16 @@ fn the_live_surface_of_an_oracle_run_lies_on_the_wall_and_a_moving_wall_shows_in
     let r = live(&wave, "live_surface_rmse_m");
     assert!(r > 5.0 * live(&still, "live_surface_rmse_m") && r < 0.004, "live surface RMSE {r}");
     assert!(live(&wave, "live_surface_p95_m") >= live(&wave, "live_surface_median_m"));
+    // The split into the surfels in the last frame's view and those the camera left beside or
+    // behind it: on the still wall both lie on it, and on the wave the two parts make the whole.
+    // (In view are the surfels the last frames created from one or few measurements.)
+    assert!(live(&still, "live_surface_in_view_rmse_m") < 3e-4 && live(&still, "live_surface_left_rmse_m") < 1e-4);
+    let (seen, left) = (live(&wave, "live_surface_in_view_rmse_m"), live(&wave, "live_surface_left_rmse_m"));
+    let (n_seen, n_left) = (live(&wave, "live_surface_in_view_points"), live(&wave, "live_surface_left_points"));
+    assert!(n_seen > 100.0 && n_left > 100.0, "{n_seen} in view, {n_left} left");
+    assert_eq!(n_seen + n_left, live(&wave, "live_surface_points"));
+    let whole = ((n_seen * seen * seen + n_left * left * left) / (n_seen + n_left)).sqrt();
+    assert!((whole - r).abs() < 1e-9 * r.max(1.0), "the parts {seen} and {left} make {whole}, the whole {r}");
     // At the true poses the alignment on the window's poses alone is the global one (identity):
     // the two figures agree.
     for s in [&still, &wave] {

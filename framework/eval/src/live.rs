@@ -9,9 +9,13 @@
 
 use serde::Serialize;
 
+use nalgebra::Point3;
+
 use crate::Similarity;
 use crate::surface::Truth;
-use capsule_slam_framework::map::SurfelSet;
+use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::geometry::Iso3;
+use capsule_slam_framework::map::{Surfel, SurfelSet};
 
 /// Live surface error statistics.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -37,14 +41,63 @@ pub fn live_surface_error(
     window_frames: u32,
     plane_radius_m: f64,
 ) -> Option<LiveSurfaceError> {
-    let truth = Truth::new(truth_now)?;
+    live_error_of(map, alignment, truth_now, plane_radius_m, |s| s.t >= last_frame.saturating_sub(window_frames) && s.t <= last_frame)
+}
+
+/// The true camera at the last frame: its intrinsics (with its lens and round field of view)
+/// and its pose in the true world.
+#[derive(Debug, Clone, Copy)]
+pub struct LastView<'a> {
+    /// The camera.
+    pub camera: &'a PinholeCamera,
+    /// Its true pose at the last frame (camera → true world).
+    pub t_world_cam: Iso3,
+}
+
+impl LastView<'_> {
+    /// Whether a true-world point projects into the image (inside its round field of view if
+    /// it has one), in front of the camera. Occlusion is not tested.
+    fn sees(&self, p_world: &Point3<f64>) -> bool {
+        let c = self.camera;
+        let Some(px) = c.project_distorted(&self.t_world_cam.inverse_transform_point(p_world)) else { return false };
+        let inside = px.x >= 0.0 && px.y >= 0.0 && px.x < c.width as f64 && px.y < c.height as f64;
+        inside && c.fov_radius_px.is_none_or(|r| (px.x - c.cx).hypot(px.y - c.cy) <= r)
+    }
+}
+
+/// [`live_surface_error`] split by where the live surfels are at the last frame: `(in_view,
+/// left)`, those that project into the true last camera's image (the wall that frame measured)
+/// and those beside or behind it (surface the camera has left since it saw it, whose motion
+/// since then no measurement constrains: a map can carry it along only by the warp's reach or a
+/// motion model). Each is measured after the alignment, at its aligned position; `None` when
+/// it holds no surfel.
+pub fn live_surface_split(
+    map: &SurfelSet,
+    alignment: &Similarity,
+    truth_now: &SurfelSet,
+    last_frame: u32,
+    window_frames: u32,
+    plane_radius_m: f64,
+    view: &LastView,
+) -> (Option<LiveSurfaceError>, Option<LiveSurfaceError>) {
     let first = last_frame.saturating_sub(window_frames);
-    let mut dist: Vec<f64> = map
-        .surfels
-        .iter()
-        .filter(|s| s.t >= first && s.t <= last_frame)
-        .map(|s| truth.distance(&alignment.apply(&s.position_m.cast()), plane_radius_m).1)
-        .collect();
+    let live = |t: u32| t >= first && t <= last_frame;
+    let in_view = live_error_of(map, alignment, truth_now, plane_radius_m, |s| live(s.t) && view.sees(&alignment.apply(&s.position_m.cast())));
+    let left = live_error_of(map, alignment, truth_now, plane_radius_m, |s| live(s.t) && !view.sees(&alignment.apply(&s.position_m.cast())));
+    (in_view, left)
+}
+
+/// The statistics over the surfels that pass `counts`.
+fn live_error_of(
+    map: &SurfelSet,
+    alignment: &Similarity,
+    truth_now: &SurfelSet,
+    plane_radius_m: f64,
+    counts: impl Fn(&Surfel) -> bool,
+) -> Option<LiveSurfaceError> {
+    let truth = Truth::new(truth_now)?;
+    let mut dist: Vec<f64> =
+        map.surfels.iter().filter(|s| counts(s)).map(|s| truth.distance(&alignment.apply(&s.position_m.cast()), plane_radius_m).1).collect();
     if dist.is_empty() {
         return None;
     }
@@ -85,6 +138,38 @@ mod tests {
         assert_eq!(e.points, 1600, "the surfels last seen at frame 50 are not live at frame 100");
         assert!(e.rmse_m < 1e-7);
         assert!(live_surface_error(&plane(0.05, 10), &identity(), &truth, 100, 30, 0.001).is_none(), "nothing live");
+    }
+
+    #[test]
+    fn the_split_separates_the_wall_in_view_from_the_wall_the_camera_left() {
+        // The test plane's surfels lie every 0.5 mm in x, y ∈ [−1, 1) cm at z = 5 cm. A 100×100 px
+        // camera with fx = 1250 px, 5 cm in front of it looking along +z and shifted by a quarter
+        // of the spacing, sees 4 mm of it across: 8 × 8 surfels.
+        let truth = plane(0.05, 0);
+        let cam = PinholeCamera::new(100, 100, 1250.0, 1250.0, 50.0, 50.0);
+        let view = LastView { camera: &cam, t_world_cam: Iso3::translation(0.000125, 0.000125, 0.0) };
+        let mut map = plane(0.05, 100);
+        // The map lies 3 mm off the wall outside the view and on it inside.
+        for s in &mut map.surfels {
+            let p = s.position_m;
+            if !view.sees(&p.cast()) {
+                s.position_m.z += 0.003;
+            }
+        }
+        let (in_view, left) = live_surface_split(&map, &identity(), &truth, 100, 30, 0.001, &view);
+        let (in_view, left) = (in_view.unwrap(), left.unwrap());
+        assert_eq!((in_view.points, left.points), (64, 1600 - 64));
+        assert!(in_view.rmse_m < 1e-7, "{in_view:?}");
+        assert!((left.rmse_m - 0.003).abs() < 1e-6, "{left:?}");
+        let all = live_surface_error(&map, &identity(), &truth, 100, 30, 0.001).unwrap();
+        let parts = (in_view.points as f64 * in_view.rmse_m.powi(2) + left.points as f64 * left.rmse_m.powi(2)) / all.points as f64;
+        assert!((all.rmse_m - parts.sqrt()).abs() < 1e-9, "the parts make the whole");
+        // A camera turned away sees nothing of it; a round field of view sees less.
+        let away = LastView { camera: &cam, t_world_cam: Iso3::translation(0.0, 0.0, 0.1) };
+        assert!(live_surface_split(&map, &identity(), &truth, 100, 30, 0.001, &away).0.is_none());
+        let round = PinholeCamera { fov_radius_px: Some(20.0), ..cam.clone() };
+        let (r, _) = live_surface_split(&map, &identity(), &truth, 100, 30, 0.001, &LastView { camera: &round, ..view });
+        assert!(r.unwrap().points < 64);
     }
 
     #[test]

@@ -3,11 +3,12 @@
 
 use std::collections::BTreeMap;
 
-use super::live::live_surface_error;
+use super::live::{LastView, live_surface_error, live_surface_split};
 use super::rpe::{Delta, rpe};
 use super::surface::{SurfaceOptions, surface_error};
 use super::warp::{WallMotion, warp_error};
 use super::{align_recent, align_trajectory, associate, ate, path_length_m};
+use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::geometry::{Iso3, StampedPose};
 use capsule_slam_framework::map::SurfelSet;
 
@@ -109,7 +110,7 @@ pub fn covered_path_length_m(est: &[StampedPose], gt: &[StampedPose], tolerance_
 
 /// A readable table of the figures (millimetres and degrees).
 pub fn table(m: &BTreeMap<String, f64>) -> String {
-    let rows: [(&str, &str, f64, &str); 26] = [
+    let rows: [(&str, &str, f64, &str); 28] = [
         ("path_length_m", "path length (covered)", 1e3, "mm"),
         ("gt_path_length_m", "path length (whole truth)", 1e3, "mm"),
         ("ate_rmse_m", "ATE RMSE, SE(3)", 1e3, "mm"),
@@ -131,6 +132,8 @@ pub fn table(m: &BTreeMap<String, f64>) -> String {
         ("live_surface_rmse_m", "live surface RMSE", 1e3, "mm"),
         ("live_surface_median_m", "live surface median", 1e3, "mm"),
         ("live_surface_p95_m", "live surface p95", 1e3, "mm"),
+        ("live_surface_in_view_rmse_m", "  in the last frame's view", 1e3, "mm"),
+        ("live_surface_left_rmse_m", "  left by the camera", 1e3, "mm"),
         ("live_surface_local_rmse_m", "  window-aligned RMSE", 1e3, "mm"),
         ("live_surface_local_median_m", "  window-aligned median", 1e3, "mm"),
         ("warp_error_rmse_m", "warp error RMSE", 1e3, "mm"),
@@ -149,8 +152,10 @@ pub fn table(m: &BTreeMap<String, f64>) -> String {
 /// The live surface error of `map` against `truth_now`, the true surface at `last_frame`
 /// (surfels seen in the last `live_window_frames` frames, moved by the trajectory alignment of
 /// the headline ATE: SE(3), or Sim(3) with `sim3`). Keys `live_surface_rmse_m`,
-/// `live_surface_median_m`, `live_surface_p95_m`, `live_surface_points`; and
-/// `live_surface_local_rmse_m`, `live_surface_local_median_m` with the alignment fitted to the
+/// `live_surface_median_m`, `live_surface_p95_m`, `live_surface_points`; with the `camera`, the
+/// same surfels split ([`live_surface_split`]) into `live_surface_in_view_rmse_m` / `_points`
+/// (inside the true last camera's image) and `live_surface_left_rmse_m` / `_points` (beside or
+/// behind it); and `live_surface_local_rmse_m`, `live_surface_local_median_m` with the alignment fitted to the
 /// window's poses alone ([`align_recent`]). Empty when nothing is live or the trajectory cannot
 /// be aligned.
 pub fn evaluate_live(
@@ -159,6 +164,7 @@ pub fn evaluate_live(
     map: &SurfelSet,
     truth_now: &SurfelSet,
     last_frame: u32,
+    camera: Option<&PinholeCamera>,
     opts: &EvalOptions,
 ) -> BTreeMap<String, f64> {
     let mut m = BTreeMap::new();
@@ -168,6 +174,20 @@ pub fn evaluate_live(
         m.insert("live_surface_median_m".into(), e.median_m);
         m.insert("live_surface_p95_m".into(), e.p95_m);
         m.insert("live_surface_points".into(), e.points as f64);
+    }
+    // The same surfels split into the wall in the last frame's view and the wall the camera has
+    // left (no measurement constrains where it went since).
+    if let Some(camera) = camera
+        && let Some(t_world_cam) = pose_at(gt, est.last().map(|p| p.timestamp_s), opts.tolerance_s)
+    {
+        let view = LastView { camera, t_world_cam };
+        let (in_view, left) = live_surface_split(map, &align, truth_now, last_frame, opts.live_window_frames, opts.surface.plane_radius_m, &view);
+        for (key, e) in [("live_surface_in_view", in_view), ("live_surface_left", left)] {
+            if let Some(e) = e {
+                m.insert(format!("{key}_rmse_m"), e.rmse_m);
+                m.insert(format!("{key}_points"), e.points as f64);
+            }
+        }
     }
     // The same surfels under an alignment fitted to the window's poses alone: what is left is the
     // map's own lag behind the wall, without the drift accumulated before the window.
@@ -179,6 +199,13 @@ pub fn evaluate_live(
         m.insert("live_surface_local_median_m".into(), e.median_m);
     }
     m
+}
+
+/// The true pose at the stamp nearest `stamp_s`, if one lies within `tolerance_s`.
+fn pose_at(gt: &[StampedPose], stamp_s: Option<f64>, tolerance_s: f64) -> Option<Iso3> {
+    let stamp_s = stamp_s?;
+    let nearest = gt.iter().min_by(|a, b| (a.timestamp_s - stamp_s).abs().total_cmp(&(b.timestamp_s - stamp_s).abs()))?;
+    ((nearest.timestamp_s - stamp_s).abs() <= tolerance_s).then_some(nearest.t_world_cam)
 }
 
 /// How far along each camera axis the local alignment's pose points lie, metres (the distance

@@ -258,7 +258,9 @@ fn evaluate_run(
         (Some(m), LiveTruth::At(now)) => {
             // Monocular scale is only estimated: its live surface is aligned with Sim(3).
             let live_opts = EvalOptions { sim3: pipeline.depth_source() == DepthSource::Estimated, ..*eval_opts };
-            summary.metrics.extend(evaluate_live(pipeline.trajectory(), gt, m, &now, last as u32, &live_opts));
+            // The input's own camera, its lens included: what the last frame's image saw.
+            let camera = dataset.camera_file().camera();
+            summary.metrics.extend(evaluate_live(pipeline.trajectory(), gt, m, &now, last as u32, Some(&camera), &live_opts));
         }
         (_, LiveTruth::Missing(why)) => summary.warnings.push(why),
         _ => {}
