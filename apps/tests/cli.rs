@@ -493,3 +493,55 @@ fn the_stereo_config_runs_a_stereo_phantom_at_metric_scale_without_a_light_model
     let e = capsule_slam_eval::depth::depth_error(&d, &truth, false).unwrap();
     assert!(e.abs_rel < 0.03 && e.pixels > 20_000, "{e:?}");
 }
+
+#[test]
+fn eval_splits_the_live_surface_by_the_last_view_with_the_sequences_camera_and_names_a_bad_one() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (seq, out) = (tmp.path().join("seq"), tmp.path().join("out"));
+    let s = |p: &std::path::Path| p.to_str().unwrap().to_owned();
+    let synth = ["synth", "--preset", "2", "--frames", "30", "--size", "naneye", "--deform", "4", "--surface-every", "10", "--noise", "0", "--specular", "0"];
+    let (ok, _, err) = output(&[&synth[..], &["--out", &s(&seq)]].concat());
+    assert!(ok, "{err}");
+    let oracle = [
+        "--set",
+        "pipeline.depth=sensor",
+        "--set",
+        "pipeline.preprocess=[]",
+        "--set",
+        "pipeline.tracker=ground-truth",
+        "--set",
+        "input.initial_pose=ground-truth",
+    ];
+    let (ok, stdout, err) = output(&[&["run", "--input", &s(&seq), "--out", &s(&out), "--no-plots", "-q"][..], &oracle[..]].concat());
+    assert!(ok, "{err}");
+    assert!(stdout.contains("in the last frame's view") && stdout.contains("the camera left"), "{stdout}");
+    let eval = |live: &std::path::Path| {
+        output(&[
+            "eval",
+            "--gt",
+            &s(&seq.join("groundtruth.txt")),
+            "--est",
+            &s(&out.join("trajectory.txt")),
+            "--map",
+            &s(&out.join("map.ply")),
+            "--surface-gt",
+            &s(&seq.join("gt_surface.ply")),
+            "--live-surface-gt",
+            &s(live),
+        ])
+    };
+    let last = "gt_surface_000029.ply";
+    let (ok, stdout, err) = eval(&seq.join(last));
+    assert!(ok && stdout.contains("in the last frame's view") && stdout.contains("left by the camera"), "{stdout}{err}");
+    // Without a camera.toml beside the true surface the split is left out, and said so.
+    let bare = tmp.path().join("bare");
+    std::fs::create_dir(&bare).unwrap();
+    std::fs::copy(seq.join(last), bare.join(last)).unwrap();
+    let (ok, stdout, err) = eval(&bare.join(last));
+    assert!(ok && stdout.contains("live surface RMSE") && !stdout.contains("in the last frame's view"), "{stdout}");
+    assert!(err.contains("camera.toml") && err.contains("not split"), "{err}");
+    // A broken one is an error that names it.
+    std::fs::write(bare.join("camera.toml"), "width = 'wide'\n").unwrap();
+    let (ok, _, err) = eval(&bare.join(last));
+    assert!(!ok && err.contains(&s(&bare.join("camera.toml"))), "{err}");
+}
