@@ -15,7 +15,7 @@ use crate::Similarity;
 use crate::surface::Truth;
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::geometry::Iso3;
-use capsule_slam_framework::map::{Surfel, SurfelSet};
+use capsule_slam_framework::map::SurfelSet;
 
 /// Live surface error statistics.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -41,7 +41,8 @@ pub fn live_surface_error(
     window_frames: u32,
     plane_radius_m: f64,
 ) -> Option<LiveSurfaceError> {
-    live_error_of(map, alignment, truth_now, plane_radius_m, |s| s.t >= last_frame.saturating_sub(window_frames) && s.t <= last_frame)
+    let live = live_distances(map, alignment, truth_now, last_frame, window_frames, plane_radius_m)?;
+    stats(live.into_iter().map(|(_, d)| d).collect())
 }
 
 /// The true camera at the last frame: its intrinsics (with its lens and round field of view)
@@ -80,24 +81,30 @@ pub fn live_surface_split(
     plane_radius_m: f64,
     view: &LastView,
 ) -> (Option<LiveSurfaceError>, Option<LiveSurfaceError>) {
-    let first = last_frame.saturating_sub(window_frames);
-    let live = |t: u32| t >= first && t <= last_frame;
-    let in_view = live_error_of(map, alignment, truth_now, plane_radius_m, |s| live(s.t) && view.sees(&alignment.apply(&s.position_m.cast())));
-    let left = live_error_of(map, alignment, truth_now, plane_radius_m, |s| live(s.t) && !view.sees(&alignment.apply(&s.position_m.cast())));
-    (in_view, left)
+    let Some(live) = live_distances(map, alignment, truth_now, last_frame, window_frames, plane_radius_m) else { return (None, None) };
+    let (in_view, left): (Vec<_>, Vec<_>) = live.into_iter().partition(|(p, _)| view.sees(p));
+    let part = |v: Vec<(Point3<f64>, f64)>| stats(v.into_iter().map(|(_, d)| d).collect());
+    (part(in_view), part(left))
 }
 
-/// The statistics over the surfels that pass `counts`.
-fn live_error_of(
+/// Each live surfel's aligned position and its distance to `truth_now`; `None` when the truth
+/// is empty.
+fn live_distances(
     map: &SurfelSet,
     alignment: &Similarity,
     truth_now: &SurfelSet,
+    last_frame: u32,
+    window_frames: u32,
     plane_radius_m: f64,
-    counts: impl Fn(&Surfel) -> bool,
-) -> Option<LiveSurfaceError> {
+) -> Option<Vec<(Point3<f64>, f64)>> {
     let truth = Truth::new(truth_now)?;
-    let mut dist: Vec<f64> =
-        map.surfels.iter().filter(|s| counts(s)).map(|s| truth.distance(&alignment.apply(&s.position_m.cast()), plane_radius_m).1).collect();
+    let first = last_frame.saturating_sub(window_frames);
+    let live = map.surfels.iter().filter(|s| s.t >= first && s.t <= last_frame);
+    Some(live.map(|s| alignment.apply(&s.position_m.cast())).map(|p| (p, truth.distance(&p, plane_radius_m).1)).collect())
+}
+
+/// RMSE, median and p95 of `dist`; `None` when it is empty.
+fn stats(mut dist: Vec<f64>) -> Option<LiveSurfaceError> {
     if dist.is_empty() {
         return None;
     }

@@ -9,7 +9,7 @@ use super::surface::{SurfaceOptions, surface_error};
 use super::warp::{WallMotion, warp_error};
 use super::{align_recent, align_trajectory, associate, ate, path_length_m};
 use capsule_slam_framework::camera::PinholeCamera;
-use capsule_slam_framework::geometry::{Iso3, StampedPose};
+use capsule_slam_framework::geometry::{Iso3, StampedPose, nearest_in_time};
 use capsule_slam_framework::map::SurfelSet;
 
 /// What to evaluate.
@@ -178,9 +178,10 @@ pub fn evaluate_live(
     // The same surfels split into the wall in the last frame's view and the wall the camera has
     // left (no measurement constrains where it went since).
     if let Some(camera) = camera
-        && let Some(t_world_cam) = pose_at(gt, est.last().map(|p| p.timestamp_s), opts.tolerance_s)
+        && let Some(last) = est.last()
+        && let Some(at) = nearest_in_time(gt, last.timestamp_s, opts.tolerance_s, |p| p.timestamp_s)
     {
-        let view = LastView { camera, t_world_cam };
+        let view = LastView { camera, t_world_cam: gt[at].t_world_cam };
         let (in_view, left) = live_surface_split(map, &align, truth_now, last_frame, opts.live_window_frames, opts.surface.plane_radius_m, &view);
         for (key, e) in [("live_surface_in_view", in_view), ("live_surface_left", left)] {
             if let Some(e) = e {
@@ -199,13 +200,6 @@ pub fn evaluate_live(
         m.insert("live_surface_local_median_m".into(), e.median_m);
     }
     m
-}
-
-/// The true pose at the stamp nearest `stamp_s`, if one lies within `tolerance_s`.
-fn pose_at(gt: &[StampedPose], stamp_s: Option<f64>, tolerance_s: f64) -> Option<Iso3> {
-    let stamp_s = stamp_s?;
-    let nearest = gt.iter().min_by(|a, b| (a.timestamp_s - stamp_s).abs().total_cmp(&(b.timestamp_s - stamp_s).abs()))?;
-    ((nearest.timestamp_s - stamp_s).abs() <= tolerance_s).then_some(nearest.t_world_cam)
 }
 
 /// How far along each camera axis the local alignment's pose points lie, metres (the distance
