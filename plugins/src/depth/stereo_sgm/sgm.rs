@@ -87,51 +87,140 @@ fn directions(paths: usize) -> Vec<(isize, isize)> {
 }
 
 /// The sum of the path costs over every direction, `w × h × n` (saturating u16: 8 paths of at
-/// most the worst cost plus P2 each). The directions run in parallel, each one sequentially
-/// into its own volume.
+/// most the worst cost plus P2 each; every term is non-negative, so the order of the sum does
+/// not change it). Two sweeps, in parallel: down the image for the paths that come from above
+/// (and the left-to-right path), up it for the others; each sweep steps all its paths one
+/// row at a time and adds them into its running total while the row is in cache.
 pub fn aggregate(c: &[u16], w: usize, h: usize, s: &SgmSettings) -> Vec<u16> {
     let n = s.count();
-    directions(s.paths)
-        .into_par_iter()
-        .map(|dir| path_costs(c, w, h, n, dir, s))
-        .reduce_with(|mut a, b| {
-            a.iter_mut().zip(&b).for_each(|(t, v)| *t = t.saturating_add(*v));
-            a
-        })
-        .unwrap_or_else(|| vec![0; w * h * n])
+    let (down, up): (Vec<_>, Vec<_>) = directions(s.paths).into_iter().partition(|&(dx, dy)| dy > 0 || (dy == 0 && dx > 0));
+    let (mut total, other) = rayon::join(|| sweep(c, (w, h, n), &down, s, true), || sweep(c, (w, h, n), &up, s, false));
+    total.iter_mut().zip(&other).for_each(|(t, v)| *t = t.saturating_add(*v));
+    total
 }
 
-/// The path costs along one direction: the pixels are visited so that each one's predecessor
-/// `p − r` comes first (rows in the path's vertical order, each row in its horizontal order).
-fn path_costs(c: &[u16], w: usize, h: usize, n: usize, (dx, dy): (isize, isize), s: &SgmSettings) -> Vec<u16> {
-    let mut l = vec![0u16; w * h * n];
-    let xs: Vec<usize> = if dx >= 0 { (0..w).collect() } else { (0..w).rev().collect() };
-    let ys: Vec<usize> = if dy >= 0 { (0..h).collect() } else { (0..h).rev().collect() };
-    let mut prev_row = vec![0u16; w * n];
-    let mut row = vec![0u16; w * n];
-    let mut last = vec![0u16; n];
+/// The summed path costs of the directions `dirs`, all of which visit the rows downward
+/// (`downward`) or all upward: each pixel's predecessor `p − r` comes first.
+fn sweep(c: &[u16], (w, h, n): (usize, usize, usize), dirs: &[(isize, isize)], s: &SgmSettings, downward: bool) -> Vec<u16> {
+    let mut total = vec![0u16; w * h * n];
+    let mut prev: Vec<Vec<u16>> = dirs.iter().map(|_| vec![0u16; w * n]).collect();
+    let mut row: Vec<Vec<u16>> = dirs.iter().map(|_| vec![0u16; w * n]).collect();
+    let mut scratch = RowScratch::new(w, n);
+    let ys: Vec<usize> = if downward { (0..h).collect() } else { (0..h).rev().collect() };
     for (j, &y) in ys.iter().enumerate() {
-        for (i, &x) in xs.iter().enumerate() {
-            let cell = &c[(y * w + x) * n..(y * w + x + 1) * n];
-            let out = &mut row[x * n..(x + 1) * n];
-            // The predecessor (x − dx, y − dy): the pixel visited just before (dy = 0) or one
-            // in the row before.
-            let px = x as isize - dx;
-            let prev: Option<&[u16]> = if dy == 0 {
-                (i > 0).then_some(&last[..])
+        let (cells, sums) = (&c[y * w * n..(y + 1) * w * n], &mut total[y * w * n..(y + 1) * w * n]);
+        for (i, &(dx, dy)) in dirs.iter().enumerate() {
+            let out = &mut row[i];
+            if dy == 0 {
+                step_along_row(cells, out, (w, n, dx), s);
+            } else if j == 0 {
+                out.copy_from_slice(cells);
             } else {
-                (j > 0 && px >= 0 && (px as usize) < w).then(|| &prev_row[px as usize * n..(px as usize + 1) * n])
-            };
-            match prev {
-                Some(prev) => step_any(cell, prev, out, s.p1, s.p2),
-                None => out.copy_from_slice(cell),
+                step_row(cells, &prev[i], out, (w, n, dx), s, &mut scratch);
             }
-            last.copy_from_slice(out);
+            for (t, v) in sums.iter_mut().zip(out.iter()) {
+                *t = t.saturating_add(*v);
+            }
         }
-        l[y * w * n..(y + 1) * w * n].copy_from_slice(&row);
-        std::mem::swap(&mut prev_row, &mut row);
+        std::mem::swap(&mut prev, &mut row);
     }
-    l
+    total
+}
+
+/// A path along the row (`dy = 0`, direction `dx`): each pixel steps from the one visited just
+/// before; the first starts from its own costs.
+fn step_along_row(cells: &[u16], out: &mut [u16], (w, n, dx): (usize, usize, isize), s: &SgmSettings) {
+    let xs: Box<dyn Iterator<Item = usize>> = if dx >= 0 { Box::new(0..w) } else { Box::new((0..w).rev()) };
+    for (i, x) in xs.enumerate() {
+        let cell = &cells[x * n..(x + 1) * n];
+        if i == 0 {
+            out[x * n..(x + 1) * n].copy_from_slice(cell);
+            continue;
+        }
+        // The predecessor and this pixel are neighbours in `out`.
+        let p = (x as isize - dx) as usize;
+        let (prev, here) = if p < x {
+            let (a, b) = out.split_at_mut(x * n);
+            (&a[p * n..(p + 1) * n], &mut b[..n])
+        } else {
+            let (a, b) = out.split_at_mut(p * n);
+            (&b[..n], &mut a[x * n..(x + 1) * n])
+        };
+        step_any(cell, prev, here, s.p1, s.p2);
+    }
+}
+
+/// The buffers [`step_row`] reuses along a path: each pixel's smallest previous cost spread
+/// over its `n` disparities, and the masks of a pixel's first and last disparity.
+struct RowScratch {
+    floor: Vec<u16>,
+    min: Vec<u16>,
+    first: Vec<u16>,
+    last: Vec<u16>,
+}
+
+impl RowScratch {
+    fn new(w: usize, n: usize) -> Self {
+        let mask = |at: usize| (0..w * n).map(|j| if j % n == at { u16::MAX } else { 0 }).collect();
+        Self { floor: vec![0; w * n], min: vec![0; w * n], first: mask(0), last: mask(n.saturating_sub(1)) }
+    }
+}
+
+/// [`step`] for a whole row of a path that comes from the row before (`dy ≠ 0`): pixel `x`'s
+/// predecessor is `x − dx` in `prev`; a pixel without one (outside the image) starts from its
+/// own costs. The same arithmetic as [`step`], written over the row's `w · n` values at once
+/// (a disparity's neighbours `k ± 1` masked at a pixel's first and last disparity), so that
+/// the compiler vectorises it across pixels.
+fn step_row(c: &[u16], prev: &[u16], out: &mut [u16], (w, n, dx): (usize, usize, isize), s: &SgmSettings, t: &mut RowScratch) {
+    // The predecessors' values, aligned with this row's pixels: pixel x reads pixel x − dx.
+    let shift = (dx.unsigned_abs() * n).min(w * n);
+    let (lo, hi) = if dx > 0 { (shift, w * n) } else { (0, w * n - shift) };
+    if lo >= hi {
+        // No pixel of the row has a predecessor (a row one pixel wide on a diagonal path).
+        out.copy_from_slice(c);
+        return;
+    }
+    let src = |j: usize| if dx > 0 { j - shift } else { j + shift };
+    for x in 0..w {
+        let px = x as isize - dx;
+        let m = if px >= 0 && (px as usize) < w { prev[px as usize * n..(px as usize + 1) * n].iter().copied().fold(u16::MAX, u16::min) } else { 0 };
+        t.min[x * n..(x + 1) * n].fill(m);
+        t.floor[x * n..(x + 1) * n].fill(m.saturating_add(s.p2));
+    }
+    let p = &prev[src(lo)..=src(hi - 1)];
+    let (c_in, o) = (&c[lo..hi], &mut out[lo..hi]);
+    let (min, floor, first, last) = (&t.min[lo..hi], &t.floor[lo..hi], &t.first[lo..hi], &t.last[lo..hi]);
+    let len = hi - lo;
+    let p1 = s.p1;
+    // k − 1 and k + 1 of the same pixel; at the pixel's first (last) disparity the mask makes
+    // the value u16::MAX, i.e. absent. The row's first and last values have no outer
+    // neighbour at all (they are a pixel's first and last disparity: masked either way).
+    let one = |j: usize, left: u16, right: u16| c_in[j] + p[j].min(left | first[j]).min(right | last[j]).min(floor[j]) - min[j];
+    if len == 1 {
+        o[0] = one(0, u16::MAX, u16::MAX);
+    } else if len > 1 {
+        o[0] = one(0, u16::MAX, p[1].saturating_add(p1));
+        o[len - 1] = one(len - 1, p[len - 2].saturating_add(p1), u16::MAX);
+        let inner = o[1..len - 1]
+            .iter_mut()
+            .zip(&c_in[1..len - 1])
+            .zip(p.windows(3))
+            .zip(&first[1..len - 1])
+            .zip(&last[1..len - 1])
+            .zip(&floor[1..len - 1])
+            .zip(&min[1..len - 1]);
+        for ((((((o, c), pw), f), l), fl), m) in inner {
+            let left = pw[0].saturating_add(p1) | f;
+            let right = pw[2].saturating_add(p1) | l;
+            *o = c + pw[1].min(left).min(right).min(*fl) - m;
+        }
+    }
+    // Pixels whose predecessor is outside the image start from their own costs.
+    if dx > 0 {
+        out[..shift].copy_from_slice(&c[..shift]);
+    } else if dx < 0 {
+        out[w * n - shift..].copy_from_slice(&c[w * n - shift..]);
+    }
 }
 
 /// The index of the smallest of `v` and its parabola offset in [−0.5, 0.5]; `None` when another
@@ -218,6 +307,54 @@ pub fn remove_speckles(d: &mut [f32], w: usize, h: usize, min_px: usize) {
             for &p in &region {
                 d[p] = INVALID;
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Eq. 13 as written: every direction on its own, pixel by pixel in path order, each from
+    /// its predecessor's costs (none outside the image), summed with saturation.
+    fn aggregate_by_definition(c: &[u16], w: usize, h: usize, s: &SgmSettings) -> Vec<u16> {
+        let n = s.count();
+        let mut total = vec![0u16; w * h * n];
+        for (dx, dy) in directions(s.paths) {
+            let mut l = vec![0u16; w * h * n];
+            let xs: Vec<usize> = if dx >= 0 { (0..w).collect() } else { (0..w).rev().collect() };
+            let ys: Vec<usize> = if dy >= 0 { (0..h).collect() } else { (0..h).rev().collect() };
+            for &y in &ys {
+                for &x in &xs {
+                    let (px, py) = (x as isize - dx, y as isize - dy);
+                    let p = y * w + x;
+                    if px < 0 || py < 0 || px >= w as isize || py >= h as isize {
+                        l[p * n..(p + 1) * n].copy_from_slice(&c[p * n..(p + 1) * n]);
+                        continue;
+                    }
+                    let q = py as usize * w + px as usize;
+                    let prev = l[q * n..(q + 1) * n].to_vec();
+                    step(&c[p * n..(p + 1) * n], &prev, &mut l[p * n..(p + 1) * n], s.p1, s.p2);
+                }
+            }
+            total.iter_mut().zip(&l).for_each(|(t, v)| *t = t.saturating_add(*v));
+        }
+        total
+    }
+
+    #[test]
+    fn the_row_sweeps_give_eq_13_path_by_path() {
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for (w, h, n, paths) in [(13, 9, 5, 8), (13, 9, 5, 4), (7, 11, 21, 8), (6, 5, 1, 8), (9, 4, 2, 4), (1, 6, 5, 8), (8, 1, 3, 8)] {
+            let c: Vec<u16> = (0..w * h * n).map(|_| (next() % 1025) as u16).collect();
+            let s = SgmSettings { d_min: 0, d_max: n - 1, p1: 37, p2: 211, paths, lr_max_px: 1.0, uniqueness: 0.0 };
+            assert_eq!(aggregate(&c, w, h, &s), aggregate_by_definition(&c, w, h, &s), "{w}×{h}, {n} disparities, {paths} paths");
         }
     }
 }
