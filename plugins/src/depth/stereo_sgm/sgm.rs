@@ -101,30 +101,115 @@ pub fn aggregate(c: &[u16], w: usize, h: usize, s: &SgmSettings) -> Vec<u16> {
 
 /// The summed path costs of the directions `dirs`, all of which visit the rows downward
 /// (`downward`) or all upward: each pixel's predecessor `p − r` comes first.
+///
+/// The paths that come from the row before (`dy ≠ 0`) work on the row disparity-major (`k`,
+/// then `x`: [`step_row`]), where a disparity's neighbours and a pixel's smallest cost are
+/// whole-row operations the compiler vectorises; the path along the row works on it as stored.
 fn sweep(c: &[u16], (w, h, n): (usize, usize, usize), dirs: &[(isize, isize)], s: &SgmSettings, downward: bool) -> Vec<u16> {
     let mut total = vec![0u16; w * h * n];
     let mut prev: Vec<Vec<u16>> = dirs.iter().map(|_| vec![0u16; w * n]).collect();
     let mut row: Vec<Vec<u16>> = dirs.iter().map(|_| vec![0u16; w * n]).collect();
-    let mut scratch = RowScratch::new(w, n);
+    let (mut cells_kx, mut sums_kx, mut along) = (vec![0u16; w * n], vec![0u16; w * n], vec![0u16; w * n]);
+    let mut smallest = vec![0u16; w];
     let ys: Vec<usize> = if downward { (0..h).collect() } else { (0..h).rev().collect() };
     for (j, &y) in ys.iter().enumerate() {
         let (cells, sums) = (&c[y * w * n..(y + 1) * w * n], &mut total[y * w * n..(y + 1) * w * n]);
+        transpose(cells, &mut cells_kx, w, n);
+        sums_kx.fill(0);
         for (i, &(dx, dy)) in dirs.iter().enumerate() {
             let out = &mut row[i];
             if dy == 0 {
-                step_along_row(cells, out, (w, n, dx), s);
-            } else if j == 0 {
-                out.copy_from_slice(cells);
-            } else {
-                step_row(cells, &prev[i], out, (w, n, dx), s, &mut scratch);
+                step_along_row(cells, &mut along, (w, n, dx), s);
+                for (t, v) in sums.iter_mut().zip(&along) {
+                    *t = t.saturating_add(*v);
+                }
+                continue;
             }
-            for (t, v) in sums.iter_mut().zip(out.iter()) {
+            if j == 0 {
+                out.copy_from_slice(&cells_kx);
+            } else {
+                step_row(&cells_kx, &prev[i], out, (w, n, dx), s, &mut smallest);
+            }
+            for (t, v) in sums_kx.iter_mut().zip(out.iter()) {
+                *t = t.saturating_add(*v);
+            }
+        }
+        // Back to pixel-major, added to what the path along the row left there.
+        for (k, from) in sums_kx.chunks_exact(w.max(1)).enumerate() {
+            for (t, v) in sums.iter_mut().skip(k).step_by(n.max(1)).zip(from) {
                 *t = t.saturating_add(*v);
             }
         }
         std::mem::swap(&mut prev, &mut row);
     }
     total
+}
+
+/// A row of `w` pixels × `n` disparities from pixel-major (`x * n + k`) to disparity-major
+/// (`k * w + x`).
+fn transpose(src: &[u16], dst: &mut [u16], w: usize, n: usize) {
+    for (k, to) in dst.chunks_exact_mut(w.max(1)).take(n).enumerate() {
+        for (d, v) in to.iter_mut().zip(src.iter().skip(k).step_by(n.max(1))) {
+            *d = *v;
+        }
+    }
+}
+
+/// One step (Eq. 13) of a path that comes from the row before (`dy ≠ 0`, direction `dx`) for
+/// a whole row, disparity-major (`k * w + x`): pixel `x` steps from pixel `x − dx` of `prev`;
+/// a pixel without a predecessor (outside the image) starts from its own costs. The same
+/// arithmetic as [`step`], pixel by pixel.
+fn step_row(c: &[u16], prev: &[u16], out: &mut [u16], (w, n, dx): (usize, usize, isize), s: &SgmSettings, smallest: &mut [u16]) {
+    // Each predecessor's smallest cost, min over its disparities.
+    smallest.fill(u16::MAX);
+    for k in 0..n {
+        for (m, v) in smallest.iter_mut().zip(&prev[k * w..(k + 1) * w]) {
+            *m = (*m).min(*v);
+        }
+    }
+    // Pixels x in [lo, hi) read x − dx in [lo − dx, hi − dx).
+    let shift = dx.unsigned_abs().min(w);
+    let (lo, hi) = if dx > 0 { (shift, w) } else { (0, w - shift) };
+    let src = |x: usize| if dx > 0 { x - shift } else { x + shift };
+    for k in 0..n {
+        let (c_k, out_k) = (&c[k * w..(k + 1) * w], &mut out[k * w..(k + 1) * w]);
+        // Outside [lo, hi) there is no predecessor.
+        out_k[..lo].copy_from_slice(&c_k[..lo]);
+        out_k[hi..].copy_from_slice(&c_k[hi..]);
+        if lo >= hi {
+            continue;
+        }
+        let at = |kk: usize| &prev[kk * w + src(lo)..kk * w + src(lo) + (hi - lo)];
+        let here = at(k);
+        let m = &smallest[src(lo)..src(lo) + (hi - lo)];
+        // k − 1 and k + 1 where they exist; u16::MAX (absent) at the ends of the range.
+        let below = if k > 0 { Some(at(k - 1)) } else { None };
+        let above = if k + 1 < n { Some(at(k + 1)) } else { None };
+        let (c_in, o) = (&c_k[lo..hi], &mut out_k[lo..hi]);
+        let (p1, p2) = (s.p1, s.p2);
+        match (below, above) {
+            (Some(b), Some(a)) => {
+                for (((((o, c), h), b), a), m) in o.iter_mut().zip(c_in).zip(here).zip(b).zip(a).zip(m) {
+                    *o = c + (*h).min(b.saturating_add(p1)).min(a.saturating_add(p1)).min(m.saturating_add(p2)) - m;
+                }
+            }
+            (Some(b), None) => {
+                for ((((o, c), h), b), m) in o.iter_mut().zip(c_in).zip(here).zip(b).zip(m) {
+                    *o = c + (*h).min(b.saturating_add(p1)).min(m.saturating_add(p2)) - m;
+                }
+            }
+            (None, Some(a)) => {
+                for ((((o, c), h), a), m) in o.iter_mut().zip(c_in).zip(here).zip(a).zip(m) {
+                    *o = c + (*h).min(a.saturating_add(p1)).min(m.saturating_add(p2)) - m;
+                }
+            }
+            (None, None) => {
+                for (((o, c), h), m) in o.iter_mut().zip(c_in).zip(here).zip(m) {
+                    *o = c + (*h).min(m.saturating_add(p2)) - m;
+                }
+            }
+        }
+    }
 }
 
 /// A path along the row (`dy = 0`, direction `dx`): each pixel steps from the one visited just
@@ -147,79 +232,6 @@ fn step_along_row(cells: &[u16], out: &mut [u16], (w, n, dx): (usize, usize, isi
             (&b[..n], &mut a[x * n..(x + 1) * n])
         };
         step_any(cell, prev, here, s.p1, s.p2);
-    }
-}
-
-/// The buffers [`step_row`] reuses along a path: each pixel's smallest previous cost spread
-/// over its `n` disparities, and the masks of a pixel's first and last disparity.
-struct RowScratch {
-    floor: Vec<u16>,
-    min: Vec<u16>,
-    first: Vec<u16>,
-    last: Vec<u16>,
-}
-
-impl RowScratch {
-    fn new(w: usize, n: usize) -> Self {
-        let mask = |at: usize| (0..w * n).map(|j| if j % n == at { u16::MAX } else { 0 }).collect();
-        Self { floor: vec![0; w * n], min: vec![0; w * n], first: mask(0), last: mask(n.saturating_sub(1)) }
-    }
-}
-
-/// [`step`] for a whole row of a path that comes from the row before (`dy ≠ 0`): pixel `x`'s
-/// predecessor is `x − dx` in `prev`; a pixel without one (outside the image) starts from its
-/// own costs. The same arithmetic as [`step`], written over the row's `w · n` values at once
-/// (a disparity's neighbours `k ± 1` masked at a pixel's first and last disparity), so that
-/// the compiler vectorises it across pixels.
-fn step_row(c: &[u16], prev: &[u16], out: &mut [u16], (w, n, dx): (usize, usize, isize), s: &SgmSettings, t: &mut RowScratch) {
-    // The predecessors' values, aligned with this row's pixels: pixel x reads pixel x − dx.
-    let shift = (dx.unsigned_abs() * n).min(w * n);
-    let (lo, hi) = if dx > 0 { (shift, w * n) } else { (0, w * n - shift) };
-    if lo >= hi {
-        // No pixel of the row has a predecessor (a row one pixel wide on a diagonal path).
-        out.copy_from_slice(c);
-        return;
-    }
-    let src = |j: usize| if dx > 0 { j - shift } else { j + shift };
-    for x in 0..w {
-        let px = x as isize - dx;
-        let m = if px >= 0 && (px as usize) < w { prev[px as usize * n..(px as usize + 1) * n].iter().copied().fold(u16::MAX, u16::min) } else { 0 };
-        t.min[x * n..(x + 1) * n].fill(m);
-        t.floor[x * n..(x + 1) * n].fill(m.saturating_add(s.p2));
-    }
-    let p = &prev[src(lo)..=src(hi - 1)];
-    let (c_in, o) = (&c[lo..hi], &mut out[lo..hi]);
-    let (min, floor, first, last) = (&t.min[lo..hi], &t.floor[lo..hi], &t.first[lo..hi], &t.last[lo..hi]);
-    let len = hi - lo;
-    let p1 = s.p1;
-    // k − 1 and k + 1 of the same pixel; at the pixel's first (last) disparity the mask makes
-    // the value u16::MAX, i.e. absent. The row's first and last values have no outer
-    // neighbour at all (they are a pixel's first and last disparity: masked either way).
-    let one = |j: usize, left: u16, right: u16| c_in[j] + p[j].min(left | first[j]).min(right | last[j]).min(floor[j]) - min[j];
-    if len == 1 {
-        o[0] = one(0, u16::MAX, u16::MAX);
-    } else if len > 1 {
-        o[0] = one(0, u16::MAX, p[1].saturating_add(p1));
-        o[len - 1] = one(len - 1, p[len - 2].saturating_add(p1), u16::MAX);
-        let inner = o[1..len - 1]
-            .iter_mut()
-            .zip(&c_in[1..len - 1])
-            .zip(p.windows(3))
-            .zip(&first[1..len - 1])
-            .zip(&last[1..len - 1])
-            .zip(&floor[1..len - 1])
-            .zip(&min[1..len - 1]);
-        for ((((((o, c), pw), f), l), fl), m) in inner {
-            let left = pw[0].saturating_add(p1) | f;
-            let right = pw[2].saturating_add(p1) | l;
-            *o = c + pw[1].min(left).min(right).min(*fl) - m;
-        }
-    }
-    // Pixels whose predecessor is outside the image start from their own costs.
-    if dx > 0 {
-        out[..shift].copy_from_slice(&c[..shift]);
-    } else if dx < 0 {
-        out[w * n - shift..].copy_from_slice(&c[w * n - shift..]);
     }
 }
 
