@@ -182,7 +182,7 @@ fn step_row(c: &[u16], prev: &[u16], out: &mut [u16], (w, n, dx): (usize, usize,
         let at = |kk: usize| &prev[kk * w + src(lo)..kk * w + src(lo) + (hi - lo)];
         let here = at(k);
         let m = &smallest[src(lo)..src(lo) + (hi - lo)];
-        // k − 1 and k + 1 where they exist; u16::MAX (absent) at the ends of the range.
+        // Disparities k − 1 and k + 1 where they exist (none below the first, above the last).
         let below = if k > 0 { Some(at(k - 1)) } else { None };
         let above = if k + 1 < n { Some(at(k + 1)) } else { None };
         let (c_in, o) = (&c_k[lo..hi], &mut out_k[lo..hi]);
