@@ -215,8 +215,9 @@ fn step_row(c: &[u16], prev: &[u16], out: &mut [u16], (w, n, dx): (usize, usize,
 /// A path along the row (`dy = 0`, direction `dx`): each pixel steps from the one visited just
 /// before; the first starts from its own costs.
 fn step_along_row(cells: &[u16], out: &mut [u16], (w, n, dx): (usize, usize, isize), s: &SgmSettings) {
-    let xs: Box<dyn Iterator<Item = usize>> = if dx >= 0 { Box::new(0..w) } else { Box::new((0..w).rev()) };
-    for (i, x) in xs.enumerate() {
+    for i in 0..w {
+        // The i-th pixel visited: from the left for dx ≥ 0, from the right otherwise.
+        let x = if dx >= 0 { i } else { w - 1 - i };
         let cell = &cells[x * n..(x + 1) * n];
         if i == 0 {
             out[x * n..(x + 1) * n].copy_from_slice(cell);
