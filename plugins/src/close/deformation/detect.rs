@@ -71,6 +71,7 @@ pub fn register_models(
     let mut tracker = IcpRgb::new(IcpRgbParams {
         motion_model: MotionModel::None,
         rgb_reference: RgbReference::Model,
+        rgb_reference_estimated: RgbReference::Model,
         w_rgb: p.w_rgb,
         sigma_icp_m: p.sigma_icp_m,
         icp_gate_m: p.icp_gate_m,

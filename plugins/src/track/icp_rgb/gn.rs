@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::frames::Level;
 use super::relight::Relighter;
-use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_sigma, rgb_jacobian};
+use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, projected_gradient, residual_sigma, rgb_jacobian, twist_row};
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
 use capsule_slam_framework::GrayF32;
@@ -148,14 +148,17 @@ impl System {
 /// photometric term, or none.
 pub type Relight<'a> = Option<(&'a Relighter<'a>, &'a GrayF32)>;
 
-/// What one system is accumulated over: the live level, the ICP `reference` and the photometric
-/// reference `photo` (both in the reference camera frame), the relighting, and every
-/// `stride`-th live pixel.
+/// What one system is accumulated over: the live level, the ICP `reference` (in the reference
+/// camera frame) and the photometric reference `photo`, in the reference camera frame or, with
+/// `t_photo_ref`, in a keyframe's (`keyframe.rs`), the relighting, and every `stride`-th live
+/// pixel.
 #[derive(Clone, Copy)]
 pub struct Inputs<'a> {
     pub live: &'a Level,
     pub reference: &'a Level,
     pub photo: &'a Level,
+    /// The photometric reference's camera ← the reference camera (none: the same camera).
+    pub t_photo_ref: Option<Iso3>,
     pub light: Relight<'a>,
     pub stride: usize,
 }
@@ -234,7 +237,14 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
         }
     }
     // An intensity of 0 marks a pixel without one (`frames::live`: near a highlight).
-    if w.w_rgb <= 0.0 || !inside || live.gray.at(x, y) <= 0.0 {
+    if w.w_rgb <= 0.0 || live.gray.at(x, y) <= 0.0 {
+        return;
+    }
+    if let Some(t_photo_ref) = &inp.t_photo_ref {
+        keyframe_row(inp, (x, y), (&s, blended), t_ref_live, t_photo_ref, (w, sigma_live), sys);
+        return;
+    }
+    if !inside {
         return;
     }
     let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
@@ -261,6 +271,56 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     };
     let r = f64::from(ir) - predicted;
     let j = rgb_jacobian(&s, (gx, gy), cam.fx, cam.fy);
+    let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+    sys.add_row(&j, r, wt);
+    sys.rgb_n += 1;
+    sys.rgb_sse += r * r;
+}
+
+/// The photometric row of live pixel `(x, y)` against a keyframe (`inp.t_photo_ref`): the live
+/// point `s` (reference frame; moved along its ray where `blended`) carried into the keyframe's
+/// camera, sampled and relit there; the row is the keyframe's projected gradient brought back
+/// to the reference frame, `a_ref = R_photo_refᵀ a_photo`, so that the increment stays the one
+/// on `t_ref_live` (a fixed transform composed on the left).
+fn keyframe_row(
+    inp: &Inputs<'_>,
+    (x, y): (usize, usize),
+    (s, blended): (&Vector3<f64>, Option<(Vector3<f64>, f64)>),
+    t_ref_live: &Iso3,
+    t_photo_ref: &Iso3,
+    (w, sigma_live): (&Weights, f64),
+    sys: &mut System,
+) {
+    let (live, photo) = (inp.live, inp.photo);
+    let cam = &photo.cam;
+    let (s_ref, lambda) = blended.unwrap_or((*s, 1.0));
+    let p = t_photo_ref * nalgebra::Point3::from(s_ref);
+    if p.z <= 0.0 {
+        return;
+    }
+    let (pw, ph) = photo.depth.size();
+    let (uf, vf) = (cam.fx * p.x / p.z + cam.cx, cam.fy * p.y / p.z + cam.cy);
+    if !(uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < pw && ((vf + 0.5) as usize) < ph) {
+        return;
+    }
+    let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+    let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
+    let Some((ir, gx, gy)) = reference_sample(photo, (ui, vi), (uf, vf), p.z, gate_m, w.rgb_min_gradient) else { return };
+    let predicted = match inp.light {
+        None => f64::from(live.gray.at(x, y)),
+        Some((l, albedo)) => {
+            let t_photo_live = t_photo_ref * t_ref_live;
+            let lit = normal(&live.normals, x, y)
+                .and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, &t_photo_live, (uf, vf), &p.coords));
+            match lit {
+                Some(i) => i,
+                None => return,
+            }
+        }
+    };
+    let r = f64::from(ir) - predicted;
+    let a_ref = t_photo_ref.rotation.inverse() * projected_gradient(&p.coords, (gx, gy), cam.fx, cam.fy);
+    let j = twist_row(&s_ref, &a_ref);
     let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
     sys.add_row(&j, r, wt);
     sys.rgb_n += 1;

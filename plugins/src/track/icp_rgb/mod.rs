@@ -27,6 +27,7 @@
 
 pub(crate) mod frames;
 mod gn;
+mod keyframe;
 pub(crate) mod register;
 mod relight;
 mod start;
@@ -61,6 +62,9 @@ pub enum Mode {
 pub enum RgbReference {
     /// The previous live frame (lit like the current one).
     PreviousFrame,
+    /// The last keyframe, replaced as the views drift apart (`keyframe.rs`): frame-to-frame
+    /// errors stop adding up between keyframes.
+    Keyframe,
     /// The predicted model colour (the paper).
     Model,
 }
@@ -82,8 +86,25 @@ capsule_slam_framework::plugin_params! {
         pub mode: Mode = Mode::FrameToModel; unit = "-";
         /// `constant-velocity` or `none`.
         pub motion_model: MotionModel = MotionModel::ConstantVelocity; unit = "-";
-        /// Photometric reference: `previous-frame` (default, robust to the moving light) or `model`.
+        /// Photometric reference for measured depth: `previous-frame` (robust to the moving
+        /// light), `keyframe` (the last keyframe, `keyframe.rs`) or `model`. With the 5 % smooth
+        /// depth error a keyframe tracked worse on presets 4 and 5 (`docs/results/depth.md`, "A keyframe
+        /// as the photometric reference").
         pub rgb_reference: RgbReference = RgbReference::PreviousFrame; unit = "-";
+        /// The same for depth estimated from the image, where the photometric term carries the
+        /// tracking. A keyframe lowered the monocular ATE on 5 of the 7 rigid presets (mean
+        /// −18 %) but broke it on walls moving by 4 mm, and nothing yet tells a monocular run
+        /// that its wall moves (`docs/results/depth.md`, "A keyframe as the photometric reference").
+        pub rgb_reference_estimated: RgbReference = RgbReference::PreviousFrame; unit = "-";
+        /// `keyframe`: frames registered to one keyframe, at most.
+        pub keyframe_max_frames: u32 = 10; unit = "-"; range = 1.0..=10000.0;
+        /// `keyframe`: the camera's translation from the keyframe that replaces it.
+        pub keyframe_max_translation_m: f64 = 0.003; unit = "m"; range = 0.0..=100.0;
+        /// `keyframe`: the camera's rotation from the keyframe that replaces it.
+        pub keyframe_max_rotation_rad: f64 = 0.1; unit = "rad"; range = 0.0..=3.15;
+        /// `keyframe`: replaced when the photometric term finds fewer than this share of the
+        /// pixels it found on the keyframe's first frame.
+        pub keyframe_min_overlap: f64 = 0.7; unit = "-"; range = 0.0..=1.0;
         /// Weight of the photometric term, Eq. (4) (paper: 0.1).
         pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
         /// Noise scale of the point-to-plane residual for measured depth.
@@ -185,6 +206,16 @@ impl IcpRgbParams {
             edge_jump_m: self.edge_jump_m,
         }
     }
+
+    /// When the photometric keyframe is replaced (`keyframe.rs`).
+    pub fn keyframe_policy(&self) -> keyframe::Policy {
+        keyframe::Policy {
+            max_frames: self.keyframe_max_frames,
+            max_translation_m: self.keyframe_max_translation_m,
+            max_rotation_rad: self.keyframe_max_rotation_rad,
+            min_overlap: self.keyframe_min_overlap,
+        }
+    }
 }
 
 /// The joint ICP + photometric tracker.
@@ -201,17 +232,21 @@ pub struct IcpRgb {
     missing: Option<String>,
     /// The table that multiplies a divided fall-off back in (`relight::Undivide`).
     undivide: Option<Undivide>,
+    /// The photometric term's keyframe (`rgb_reference = "keyframe"`).
+    keyframe: Option<keyframe::Keyframe>,
     /// A registration stopped after the coarse levels (`register.rs`).
     unfinished: Option<Box<register::Unfinished>>,
     /// The next frame's live pyramid, built ahead ([`Tracker::prepare`]), with its frame index.
     ahead: Option<(usize, Vec<Level>)>,
 }
 
-/// How far the frame's depth is trusted, by its source (measured or estimated).
+/// How far the frame's depth is trusted, by its source (measured or estimated), and what the
+/// photometric term compares with then.
 struct DepthNoise {
     sigma_icp_m: f64,
     max_residual_m: f64,
     min_inlier_fraction: f64,
+    rgb_reference: RgbReference,
 }
 
 impl Plugin for IcpRgb {
@@ -222,14 +257,14 @@ impl Plugin for IcpRgb {
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
         let (light, missing) = load_light(&params.light_file, env)?;
-        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None, unfinished: None, ahead: None })
+        Ok(Self { params, previous: None, velocity: None, light, missing, undivide: None, keyframe: None, unfinished: None, ahead: None })
     }
 }
 
 impl IcpRgb {
     /// A tracker with no history (no previous frame, no velocity).
     pub fn new(params: IcpRgbParams) -> Self {
-        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None, unfinished: None, ahead: None }
+        Self { params, previous: None, velocity: None, light: None, missing: None, undivide: None, keyframe: None, unfinished: None, ahead: None }
     }
 
     /// [`IcpRgb::new`] with the light model of `env`'s input folder (`light_file`), as
@@ -243,11 +278,17 @@ impl IcpRgb {
     fn depth_noise(&self, source: DepthSource) -> DepthNoise {
         let p = &self.params;
         match source {
-            DepthSource::Measured => DepthNoise { sigma_icp_m: p.sigma_icp_m, max_residual_m: p.max_residual_m, min_inlier_fraction: p.min_inlier_fraction },
+            DepthSource::Measured => DepthNoise {
+                sigma_icp_m: p.sigma_icp_m,
+                max_residual_m: p.max_residual_m,
+                min_inlier_fraction: p.min_inlier_fraction,
+                rgb_reference: p.rgb_reference,
+            },
             DepthSource::Estimated => DepthNoise {
                 sigma_icp_m: p.sigma_icp_estimated_m,
                 max_residual_m: p.max_residual_estimated_m,
                 min_inlier_fraction: p.min_inlier_fraction_estimated,
+                rgb_reference: p.rgb_reference_estimated,
             },
         }
     }
@@ -329,6 +370,9 @@ impl IcpRgb {
     pub(crate) fn set_last_motion(&mut self, motion: Iso3) {
         if self.velocity.is_some() {
             self.velocity = Some(motion);
+        }
+        if let Some(kf) = self.keyframe.as_mut() {
+            kf.recompose(&motion);
         }
     }
 

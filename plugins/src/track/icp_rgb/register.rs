@@ -14,6 +14,7 @@ use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, StageError, Trac
 
 use super::frames::{self, Level};
 use super::gn::{self, Weights, accumulate};
+use super::keyframe::Keyframe;
 use super::relight::Relighter;
 use super::{DepthNoise, IcpRgb, LEVELS, Mode, MotionModel, RgbReference};
 
@@ -26,6 +27,8 @@ pub(crate) struct Unfinished {
     before: Option<Vec<Level>>,
     /// The velocity before the coarse result replaced it.
     velocity: Option<Iso3>,
+    /// The photometric keyframe before the coarse result moved it on.
+    keyframe: Option<Keyframe>,
     /// The live albedo per level, where the photometric term is relit.
     albedo: Option<Vec<GrayF32>>,
     /// The motion prior the registration started from.
@@ -97,15 +100,16 @@ impl IcpRgb {
         ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let Some(reference) = reference else {
-            return Ok((self.without_reference(live, t_world_prev * prior, ctx), None));
+            let keyframe = self.depth_noise(depth_source).rgb_reference == RgbReference::Keyframe;
+            return Ok((self.without_reference(live, t_world_prev * prior, keyframe, ctx), None));
         };
-        let photo = self.photometric_reference(self.previous.as_ref(), &reference);
         let noise = self.depth_noise(depth_source);
+        let photo = self.photometric_reference(noise.rgb_reference, self.previous.as_ref(), self.keyframe.as_ref(), &reference);
         let w = self.weights(&noise);
         // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
         let relighter = self.light.as_ref().map(Relighter::new);
         let albedo: Option<Vec<GrayF32>> = relighter.as_ref().map(|r| live.iter().map(|lv| r.live_albedo(lv)).collect());
-        let inputs = |level: usize| self.level_inputs([&live, &reference, photo], relighter.as_ref(), albedo.as_deref(), level);
+        let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level);
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
         let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
@@ -119,11 +123,11 @@ impl IcpRgb {
             let (resume, resume_level) = if lowest > 1 { (coarse, lowest - 1) } else { (run, 0) };
             if self.lost_why(&fin, &noise, &prior, &run.t).is_none() {
                 ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
-                let velocity = self.velocity;
+                let (velocity, keyframe) = (self.velocity, self.keyframe.clone());
                 let (result, before) = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx);
                 let t_world_prev = *t_world_prev;
                 self.unfinished =
-                    Some(Box::new(Unfinished { reference, before, velocity, albedo, prior, run: resume, resume_level, t_world_prev, depth_source }));
+                    Some(Box::new(Unfinished { reference, before, velocity, keyframe, albedo, prior, run: resume, resume_level, t_world_prev, depth_source }));
                 return Ok((result, initial));
             }
             // Lost there: finished now, as the uninterrupted registration.
@@ -147,9 +151,11 @@ impl IcpRgb {
         let clock = std::time::Instant::now();
         let noise = self.depth_noise(u.depth_source);
         let w = self.weights(&noise);
-        let photo = self.photometric_reference(u.before.as_ref(), &u.reference);
+        // The keyframe as the registration found it (the coarse result moved it on).
+        self.keyframe = u.keyframe.clone();
+        let photo = self.photometric_reference(noise.rgb_reference, u.before.as_ref(), self.keyframe.as_ref(), &u.reference);
         let relighter = self.light.as_ref().map(Relighter::new);
-        let inputs = |level: usize| self.level_inputs([&live, &u.reference, photo], relighter.as_ref(), u.albedo.as_deref(), level);
+        let inputs = |level: usize| self.level_inputs([&live, &u.reference], photo, relighter.as_ref(), u.albedo.as_deref(), level);
         let mut run = u.run;
         self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
@@ -171,12 +177,21 @@ impl IcpRgb {
         self.unfinished = None;
     }
 
-    /// What the photometric term compares with: the previous live frame's pyramid
-    /// (`rgb_reference = "previous-frame"`, where there is one), else the reference.
-    fn photometric_reference<'a>(&self, previous: Option<&'a Vec<Level>>, reference: &'a [Level]) -> &'a [Level] {
-        match (self.params.rgb_reference, previous) {
-            (RgbReference::PreviousFrame, Some(p)) => p,
-            _ => reference,
+    /// What the photometric term compares with, and its camera ← the reference camera where
+    /// that is not the reference camera: the keyframe (`rgb_reference = "keyframe"`, where there
+    /// is one), the previous live frame's pyramid (`"previous-frame"`, and `"keyframe"` before the
+    /// first), else the reference.
+    fn photometric_reference<'a>(
+        &self,
+        kind: RgbReference,
+        previous: Option<&'a Vec<Level>>,
+        keyframe: Option<&'a Keyframe>,
+        reference: &'a [Level],
+    ) -> (&'a [Level], Option<Iso3>) {
+        match (kind, previous, keyframe) {
+            (RgbReference::Keyframe, _, Some(kf)) => (&kf.pyramid, Some(kf.t_kf_prev)),
+            (RgbReference::PreviousFrame | RgbReference::Keyframe, Some(p), _) => (p, None),
+            _ => (reference, None),
         }
     }
 
@@ -184,7 +199,8 @@ impl IcpRgb {
     /// the relighting with the live albedo per level (every `stride_l0`-th pixel at level 0).
     fn level_inputs<'a>(
         &self,
-        [live, reference, photo]: [&'a [Level]; 3],
+        [live, reference]: [&'a [Level]; 2],
+        (photo, t_photo_ref): (&'a [Level], Option<Iso3>),
         relighter: Option<&'a Relighter<'a>>,
         albedo: Option<&'a [GrayF32]>,
         level: usize,
@@ -193,6 +209,7 @@ impl IcpRgb {
             live: &live[level],
             reference: &reference[level],
             photo: &photo[level],
+            t_photo_ref,
             light: relighter.zip(albedo).map(|(r, a)| (r, &a[level])),
             stride: if level == 0 { self.params.stride_l0 as usize } else { 1 },
         }
@@ -254,10 +271,17 @@ impl IcpRgb {
         let (status, before) = match why {
             Some(why) => {
                 ctx.warn(format!("tracking lost: {why}"));
+                // The wall may keep moving while the camera is lost: the frame that tracks
+                // again starts a keyframe rather than reaching back to one older still.
+                self.keyframe = None;
                 (TrackStatus::Lost, None)
             }
             None => {
                 self.velocity = Some(t);
+                if noise.rgb_reference == RgbReference::Keyframe {
+                    let policy = self.params.keyframe_policy();
+                    ctx.count("keyframe_new", f64::from(u8::from(Keyframe::advance(&mut self.keyframe, &live, &t, fin.rgb_n, &policy))));
+                }
                 (TrackStatus::Tracked, self.previous.replace(live))
             }
         };

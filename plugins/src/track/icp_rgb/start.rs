@@ -9,10 +9,14 @@ use super::frames::Level;
 impl IcpRgb {
     /// The first frame with usable depth is the origin (`t_world_cam`, the prior) and the next
     /// frame's reference; a frame without usable depth is lost (its pose is not measured) and
-    /// does not become the reference.
-    pub(super) fn without_reference(&mut self, live: Vec<Level>, t_world_cam: Iso3, ctx: &mut Context) -> TrackResult {
+    /// does not become the reference. With `keyframe` the frame is also the photometric term's
+    /// first keyframe.
+    pub(super) fn without_reference(&mut self, live: Vec<Level>, t_world_cam: Iso3, keyframe: bool, ctx: &mut Context) -> TrackResult {
         let usable = live.first().is_some_and(|l| l.depth.data().iter().any(|d| *d > 0.0));
         if usable {
+            if keyframe {
+                self.keyframe = Some(super::keyframe::Keyframe::new(&live));
+            }
             self.previous = Some(live);
             return TrackResult::tracked(t_world_cam);
         }

@@ -19,9 +19,20 @@ pub fn icp_jacobian(s: &Vector3<f64>, n: &Vector3<f64>) -> Vector6<f64> {
 /// Jacobian of the photometric residual of Eq. (3), `r = I_ref(π(s)) − I_live(u)`: the image
 /// gradient `g = ∇I_ref(π(s))` through the projection, `a = g · ∂π/∂s`, `J = [aᵀ, (s × a)ᵀ]`.
 pub fn rgb_jacobian(s: &Vector3<f64>, grad: (f64, f64), fx: f64, fy: f64) -> Vector6<f64> {
-    let iz = 1.0 / s.z;
-    let a = Vector3::new(grad.0 * fx * iz, grad.1 * fy * iz, -(grad.0 * fx * s.x + grad.1 * fy * s.y) * iz * iz);
-    let c = s.cross(&a);
+    twist_row(s, &projected_gradient(s, grad, fx, fy))
+}
+
+/// The image gradient `g` at the projection of `p` carried back through the projection,
+/// `a = g · ∂π/∂p` (intensity per metre, in `p`'s camera frame).
+pub fn projected_gradient(p: &Vector3<f64>, grad: (f64, f64), fx: f64, fy: f64) -> Vector3<f64> {
+    let iz = 1.0 / p.z;
+    Vector3::new(grad.0 * fx * iz, grad.1 * fy * iz, -(grad.0 * fx * p.x + grad.1 * fy * p.y) * iz * iz)
+}
+
+/// The Jacobian row `[aᵀ, (s × a)ᵀ]` of a residual whose derivative with respect to the point
+/// `s` (reference frame) is `a`, under the left increment of the module.
+pub fn twist_row(s: &Vector3<f64>, a: &Vector3<f64>) -> Vector6<f64> {
+    let c = s.cross(a);
     Vector6::new(a.x, a.y, a.z, c.x, c.y, c.z)
 }
 

@@ -88,11 +88,17 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     let gap = exp_se3(&Vector6::new(3e-4, -2e-4, 5e-4, 0.002, 0.0, -0.001));
     let t = |floor: f64| super::gn::Weights { w_rgb: 0.0, sigma_icp_m: floor, rgb_min_gradient: 0.002, ..photometric_weights() };
     let (live, reference) = levels(None);
-    let a =
-        super::gn::accumulate(&super::gn::Inputs { live: &live[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-3));
+    let a = super::gn::accumulate(
+        &super::gn::Inputs { live: &live[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &gap,
+        &t(1e-3),
+    );
     let (live_s, _) = levels(Some((1e-6f32 - 1e-8).sqrt()));
-    let b =
-        super::gn::accumulate(&super::gn::Inputs { live: &live_s[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-4));
+    let b = super::gn::accumulate(
+        &super::gn::Inputs { live: &live_s[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &gap,
+        &t(1e-4),
+    );
     assert!(a.icp_n > 500 && a.icp_n == b.icp_n, "inliers {} and {}", a.icp_n, b.icp_n);
     assert!((a.icp_rms_sigmas() / b.icp_rms_sigmas() - 1.0).abs() < 1e-4, "{} σ against {} σ", a.icp_rms_sigmas(), b.icp_rms_sigmas());
     let (ma, mb) = (a.a.full(), b.a.full());
@@ -101,15 +107,22 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     let mut reference_s = reference[1].clone();
     let (rw, rh) = reference_s.depth.size();
     reference_s.sigma = Some(capsule_slam_framework::DepthMap::from_fn(rw, rh, |_, _| [(1e-6f32 - 1e-8).sqrt()]));
-    let d = super::gn::accumulate(&super::gn::Inputs { live: &live[1], reference: &reference_s, photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-4));
+    let d = super::gn::accumulate(
+        &super::gn::Inputs { live: &live[1], reference: &reference_s, photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &gap,
+        &t(1e-4),
+    );
     assert_eq!(d.icp_n, a.icp_n);
     assert!((a.icp_rms_sigmas() / d.icp_rms_sigmas() - 1.0).abs() < 1e-4, "{} σ against {} σ", a.icp_rms_sigmas(), d.icp_rms_sigmas());
     assert!((ma - d.a.full()).norm() < 1e-4 * ma.norm(), "the normal equations differ with the model's σ");
     // A frame 1.2 × as noisy (its 3 σ still inside the 4 mm gate): its residuals are 1/1.2 as
     // many σ, and it weighs 1/1.2² (inside the Huber threshold) to 1/1.2 (outside) as much.
     let (live_2, _) = levels(Some(1.2e-3));
-    let c =
-        super::gn::accumulate(&super::gn::Inputs { live: &live_2[1], reference: &reference[1], photo: &reference[1], light: None, stride: 1 }, &gap, &t(1e-9));
+    let c = super::gn::accumulate(
+        &super::gn::Inputs { live: &live_2[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &gap,
+        &t(1e-9),
+    );
     assert_eq!(c.icp_n, a.icp_n);
     assert!((c.icp_rms_sigmas() / a.icp_rms_sigmas() - 1.0 / 1.2).abs() < 1e-3, "{} σ against {} σ", c.icp_rms_sigmas(), a.icp_rms_sigmas());
     let ratio = c.a.full().norm() / ma.norm();
@@ -235,7 +248,14 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let albedo = relighter.live_albedo(&live[0]);
     let rms = |light: Option<&super::relight::Relighter>| {
         let s = super::gn::accumulate(
-            &super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], light: light.map(|l| (l, &albedo)), stride: 1 },
+            &super::gn::Inputs {
+                live: &live[0],
+                reference: &previous[0],
+                photo: &previous[0],
+                t_photo_ref: None,
+                light: light.map(|l| (l, &albedo)),
+                stride: 1,
+            },
             &t_ref_live,
             &w,
         );
@@ -287,7 +307,14 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     let rms = |(previous, live, t_ref_live): &(Vec<super::frames::Level>, Vec<super::frames::Level>, capsule_slam_framework::Iso3)| {
         let albedo = relighter.live_albedo(&live[0]);
         let s = super::gn::accumulate(
-            &super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], light: Some((&relighter, &albedo)), stride: 1 },
+            &super::gn::Inputs {
+                live: &live[0],
+                reference: &previous[0],
+                photo: &previous[0],
+                t_photo_ref: None,
+                light: Some((&relighter, &albedo)),
+                stride: 1,
+            },
             t_ref_live,
             &w,
         );
@@ -352,7 +379,14 @@ fn photometric_bias(ph: &capsule_slam_phantom::Phantom, frames: &[capsule_slam_f
             let t_ref_live = ab[0].gt_t_world_cam.unwrap().inverse() * ab[1].gt_t_world_cam.unwrap();
             let albedo = relighter.live_albedo(&live[0]);
             let s = super::gn::accumulate(
-                &super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], light: Some((&relighter, &albedo)), stride: 1 },
+                &super::gn::Inputs {
+                    live: &live[0],
+                    reference: &previous[0],
+                    photo: &previous[0],
+                    t_photo_ref: None,
+                    light: Some((&relighter, &albedo)),
+                    stride: 1,
+                },
                 &t_ref_live,
                 &w,
             );
@@ -381,9 +415,9 @@ fn the_margin_around_highlights_takes_their_tails_out_of_the_photometric_term() 
 
 /// Stopped after the coarse levels (level 2 alone, or levels 2 and 1) and level 0's first
 /// iteration, then finished, a registration is the uninterrupted one to the bit: pose, status,
-/// statistics, and the state the next frame starts from (the velocity, the previous frame). A
-/// frame lost at the coarse pose is finished at once; nothing is left to finish after it, nor
-/// after a frame with nothing to track against.
+/// statistics, and the state the next frame starts from (the velocity, the previous frame, the
+/// photometric keyframe). A frame lost at the coarse pose is finished at once; nothing is left
+/// to finish after it, nor after a frame with nothing to track against.
 #[test]
 fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
     let ph = phantom(1, 300, 0.0);
@@ -399,8 +433,9 @@ fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
         c.copy_from_slice(&[(u * 255.0) as u8; 3]);
     }
     let t0 = frames[0].gt_t_world_cam.unwrap();
-    for lowest in [1, 2] {
-        let (mut full, mut split) = (tracker(IcpRgbParams::default(), &ph), tracker(IcpRgbParams::default(), &ph));
+    for (lowest, rgb_reference) in [(1, super::RgbReference::PreviousFrame), (2, super::RgbReference::PreviousFrame), (1, super::RgbReference::Keyframe)] {
+        let params = IcpRgbParams { rgb_reference, ..IcpRgbParams::default() };
+        let (mut full, mut split) = (tracker(params.clone(), &ph), tracker(params, &ph));
         let mut r = StageReport::default();
         let (mut at_full, mut at_split) = (t0, t0);
         let mut finished = 0;
@@ -425,6 +460,9 @@ fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
             assert_eq!(a.residual_rms.to_bits(), b.residual_rms.to_bits(), "{at}");
             assert_eq!(a.covariance, b.covariance, "{at}");
             assert_eq!(full.velocity, split.velocity, "{at}");
+            let keyframe = |t: &IcpRgb| t.keyframe.as_ref().map(|k| (k.t_kf_prev, k.pyramid[0].gray.data().to_vec()));
+            assert_eq!(keyframe(&full), keyframe(&split), "{at}: the photometric keyframe");
+            assert_eq!(full.keyframe.is_some(), rgb_reference == super::RgbReference::Keyframe && k != 3, "{at}");
             assert_eq!(a.status, if k == 3 { TrackStatus::Lost } else { TrackStatus::Tracked }, "{at}");
             if a.status == TrackStatus::Tracked {
                 (at_full, at_split) = (a.t_world_cam, b.t_world_cam);
@@ -432,4 +470,39 @@ fn a_registration_finished_at_level_0_is_the_uninterrupted_one() {
         }
         assert_eq!(finished, 3, "levels to {lowest}: frames 1, 2 and 4; frame 0 had nothing to track against, frame 3 was lost");
     }
+}
+
+/// The photometric term alone (the ICP term weighed out, as on depth from the image) tracking
+/// frames `from..to` of the phantom with sensor noise, against `reference`: the RMS position
+/// error over the frames, metres, after the first frame's pose.
+fn photometric_drift(ph: &capsule_slam_phantom::Phantom, frames: &[capsule_slam_framework::RgbdFrame], reference: super::RgbReference) -> f64 {
+    let rig = rig(ph);
+    let params = IcpRgbParams { rgb_reference: reference, sigma_icp_m: 0.1, max_residual_m: 10.0, min_inlier_fraction: 0.0, ..IcpRgbParams::default() };
+    let mut t = tracker(params, ph);
+    // Relit by the phantom's light: a keyframe's brightness changes with every frame's pose.
+    t.light = Some(super::relight::Lighting::new(ph.light.clone()));
+    let mut r = StageReport::default();
+    let t0 = frames[0].gt_t_world_cam.unwrap();
+    let mut at = t0;
+    let mut sse = 0.0;
+    for (k, f) in frames.iter().enumerate() {
+        let res = t.track(f, None, &at, &mut Context::new(k, &rig, None, &mut r)).unwrap();
+        assert_eq!(res.status, TrackStatus::Tracked, "frame {k}");
+        at = res.t_world_cam;
+        let truth = t0.inverse() * f.gt_t_world_cam.unwrap();
+        sse += ((t0.inverse() * at).translation.vector - truth.translation.vector).norm_squared();
+    }
+    (sse / frames.len() as f64).sqrt()
+}
+
+#[test]
+fn a_keyframe_stops_the_photometric_walk_of_frame_to_frame_tracking() {
+    // With sensor noise every frame-to-frame registration errs a little, and the errors add up
+    // along the path; registered to a keyframe, the frames between two keyframes share one
+    // reference and their errors do not add.
+    let ph = phantom(1, 300, 0.02);
+    let frames: Vec<_> = (100..140).map(|i| rgbd(&ph, i)).collect();
+    let walk = photometric_drift(&ph, &frames, super::RgbReference::PreviousFrame);
+    let keyed = photometric_drift(&ph, &frames, super::RgbReference::Keyframe);
+    assert!(keyed < 0.5 * walk, "RMS position error {:.4} mm with a keyframe against {:.4} mm frame to frame", keyed * 1e3, walk * 1e3);
 }
