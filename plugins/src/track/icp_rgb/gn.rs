@@ -133,6 +133,13 @@ impl System {
         self.a.full().cholesky().map(|c| -c.solve(&self.b))
     }
 
+    /// The Gauss-Newton step measured in the system's own information, `δᵀAδ = bᵀA⁻¹b`: how
+    /// many σ² of evidence the data hold against the pose the system was built at; infinite
+    /// where A is not positive definite.
+    pub fn step_chi2(&self) -> f64 {
+        self.step().map_or(f64::INFINITY, |d| d.dot(&(self.a.full() * d)))
+    }
+
     /// RMS of the ICP residuals, metres.
     pub fn icp_rms(&self) -> f64 {
         if self.icp_n == 0 { f64::INFINITY } else { (self.icp_sse / self.icp_n as f64).sqrt() }
@@ -240,12 +247,10 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     if w.w_rgb <= 0.0 || live.gray.at(x, y) <= 0.0 {
         return;
     }
-    if let Some(t_photo_ref) = &inp.t_photo_ref {
-        keyframe_row(inp, (x, y), (&s, blended), t_ref_live, t_photo_ref, (w, sigma_live), sys);
-        return;
-    }
-    if !inside {
-        return;
+    match &inp.t_photo_ref {
+        Some(t_photo_ref) => return keyframe_row(inp, (x, y), (&s, blended), t_ref_live, t_photo_ref, (w, sigma_live), sys),
+        None if !inside => return,
+        None => {}
     }
     let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
     // A point moved by λ along the ray: the light's fall-off (∝ 1/distance², the light beside the

@@ -92,9 +92,9 @@ capsule_slam_framework::plugin_params! {
         /// as the photometric reference").
         pub rgb_reference: RgbReference = RgbReference::PreviousFrame; unit = "-";
         /// The same for depth estimated from the image, where the photometric term carries the
-        /// tracking. A keyframe lowered the monocular ATE on 5 of the 7 rigid presets (mean
-        /// −18 %) but broke it on walls moving by 4 mm, and nothing yet tells a monocular run
-        /// that its wall moves (`docs/results/depth.md`, "A keyframe as the photometric reference").
+        /// tracking. A keyframe lowered the monocular ATE on 4 of the 7 rigid presets (mean
+        /// −13 %), and on walls moving by 2–4 mm was better on 4 of 10 and worse on 4
+        /// (`docs/results/depth.md`, "A keyframe as the photometric reference").
         pub rgb_reference_estimated: RgbReference = RgbReference::PreviousFrame; unit = "-";
         /// `keyframe`: frames registered to one keyframe, at most.
         pub keyframe_max_frames: u32 = 10; unit = "-"; range = 1.0..=10000.0;
@@ -105,6 +105,10 @@ capsule_slam_framework::plugin_params! {
         /// `keyframe`: replaced when the photometric term finds fewer than this share of the
         /// pixels it found on the keyframe's first frame.
         pub keyframe_min_overlap: f64 = 0.7; unit = "-"; range = 0.0..=1.0;
+        /// `keyframe`: the frame is finished against the previous frame, and the keyframe
+        /// replaced, when the previous frame's term at the keyframe's solution would step by more
+        /// than this, `δᵀAδ` in its own information (a moving wall; `register.rs`).
+        pub keyframe_max_disagreement: f64 = 3.0; unit = "-"; range = 0.0..=1.0e12;
         /// Weight of the photometric term, Eq. (4) (paper: 0.1).
         pub w_rgb: f64 = 0.1; unit = "-"; range = 0.0..=1000.0;
         /// Noise scale of the point-to-plane residual for measured depth.

@@ -18,6 +18,10 @@ use super::keyframe::Keyframe;
 use super::relight::Relighter;
 use super::{DepthNoise, IcpRgb, LEVELS, Mode, MotionModel, RgbReference};
 
+/// The photometric reference's pyramid, and its camera ← the reference camera where that is not
+/// the reference camera (a keyframe's).
+type Photo<'a> = (&'a [Level], Option<Iso3>);
+
 /// What a registration stopped before level 0 keeps to finish there.
 pub(crate) struct Unfinished {
     /// The reference pyramid.
@@ -136,7 +140,12 @@ impl IcpRgb {
         } else {
             self.descend(&inputs, (LEVELS - 1, 0), false, &w, &mut run);
         }
+        let previous = self.previous.as_deref();
+        let stale = self.keyframe_disagrees([&live, &reference], (photo, previous), (relighter.as_ref(), albedo.as_deref()), &w, &mut run, ctx);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+        if stale {
+            self.keyframe = None;
+        }
         ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
         Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial))
     }
@@ -158,7 +167,11 @@ impl IcpRgb {
         let inputs = |level: usize| self.level_inputs([&live, &u.reference], photo, relighter.as_ref(), u.albedo.as_deref(), level);
         let mut run = u.run;
         self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
+        let stale = self.keyframe_disagrees([&live, &u.reference], (photo, u.before.as_deref()), (relighter.as_ref(), u.albedo.as_deref()), &w, &mut run, ctx);
         let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+        if stale {
+            self.keyframe = None;
+        }
         ctx.count("ms_gauss_newton_fine", clock.elapsed().as_secs_f64() * 1e3);
         let Unfinished { before, velocity, prior, t_world_prev, .. } = *u;
         let result = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, &t_world_prev, ctx).0;
@@ -169,6 +182,34 @@ impl IcpRgb {
             self.velocity = velocity;
         }
         Some(result)
+    }
+
+    /// Whether the registration to a keyframe (`photo` with a transform; `keyframe.rs`)
+    /// disagrees with the `previous` frame's pyramid: the Gauss-Newton step of the term against the previous
+    /// frame at the keyframe's solution, `δᵀAδ` in its own information, above
+    /// `keyframe_max_disagreement`. The frame is then finished against the previous frame (level
+    /// 0, from the keyframe's solution) and the keyframe is stale: on a moving wall a keyframe
+    /// some frames old reads the wall's motion since as the camera's.
+    #[allow(clippy::too_many_arguments, reason = "the registration's pyramids, relighting and state")]
+    fn keyframe_disagrees(
+        &self,
+        [live, reference]: [&[Level]; 2],
+        (photo, previous): (Photo<'_>, Option<&[Level]>),
+        (relighter, albedo): (Option<&Relighter<'_>>, Option<&[GrayF32]>),
+        w: &Weights,
+        run: &mut Run,
+        ctx: &mut Context,
+    ) -> bool {
+        let (Some(_), Some(previous)) = (photo.1, previous) else { return false };
+        let f2f = self.level_inputs([live, reference], (previous, None), relighter, albedo, 0);
+        let disagreement = accumulate(&f2f, &run.t, w).step_chi2();
+        ctx.count("keyframe_disagreement", disagreement);
+        if disagreement <= self.params.keyframe_max_disagreement {
+            return false;
+        }
+        (run.on_level, run.level_ended) = (0, false);
+        self.iterate(&f2f, 0, w, run, self.params.iterations_l0);
+        true
     }
 
     /// Drops a registration stopped after the coarse levels: the caller's own level-0 pose
@@ -187,8 +228,10 @@ impl IcpRgb {
         previous: Option<&'a Vec<Level>>,
         keyframe: Option<&'a Keyframe>,
         reference: &'a [Level],
-    ) -> (&'a [Level], Option<Iso3>) {
+    ) -> Photo<'a> {
         match (kind, previous, keyframe) {
+            // Just taken, the keyframe is the previous frame.
+            (RgbReference::Keyframe, _, Some(kf)) if kf.t_kf_prev == Iso3::identity() => (&kf.pyramid, None),
             (RgbReference::Keyframe, _, Some(kf)) => (&kf.pyramid, Some(kf.t_kf_prev)),
             (RgbReference::PreviousFrame | RgbReference::Keyframe, Some(p), _) => (p, None),
             _ => (reference, None),
@@ -200,7 +243,7 @@ impl IcpRgb {
     fn level_inputs<'a>(
         &self,
         [live, reference]: [&'a [Level]; 2],
-        (photo, t_photo_ref): (&'a [Level], Option<Iso3>),
+        (photo, t_photo_ref): Photo<'a>,
         relighter: Option<&'a Relighter<'a>>,
         albedo: Option<&'a [GrayF32]>,
         level: usize,
