@@ -213,6 +213,12 @@ fn a_frame_with_a_five_percent_smooth_depth_error_is_tracked_with_its_sigma() {
     assert!(e.translation.vector.norm() < 5e-3, "translation error {} mm", e.translation.vector.norm() * 1e3);
 }
 
+/// The level-0 inputs of `live` against the previous frame `previous` (ICP and photometric
+/// reference alike), every pixel, relit with `light`.
+fn level0<'a>(live: &'a [super::frames::Level], previous: &'a [super::frames::Level], light: super::gn::Relight<'a>) -> super::gn::Inputs<'a> {
+    super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], t_photo_ref: None, light, stride: 1 }
+}
+
 /// The default weights with every photometric pixel counted (no gradient threshold) and the
 /// photometric term at full weight: for comparing intensity residuals.
 fn photometric_weights() -> super::gn::Weights {
@@ -247,18 +253,7 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let relighter = super::relight::Relighter::new(&lighting);
     let albedo = relighter.live_albedo(&live[0]);
     let rms = |light: Option<&super::relight::Relighter>| {
-        let s = super::gn::accumulate(
-            &super::gn::Inputs {
-                live: &live[0],
-                reference: &previous[0],
-                photo: &previous[0],
-                t_photo_ref: None,
-                light: light.map(|l| (l, &albedo)),
-                stride: 1,
-            },
-            &t_ref_live,
-            &w,
-        );
+        let s = super::gn::accumulate(&level0(&live, &previous, light.map(|l| (l, &albedo))), &t_ref_live, &w);
         assert!(s.rgb_n > 10_000, "{} photometric pixels", s.rgb_n);
         (s.rgb_sse / s.rgb_n as f64).sqrt()
     };
@@ -306,18 +301,7 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     let relighter = super::relight::Relighter::new(&lighting);
     let rms = |(previous, live, t_ref_live): &(Vec<super::frames::Level>, Vec<super::frames::Level>, capsule_slam_framework::Iso3)| {
         let albedo = relighter.live_albedo(&live[0]);
-        let s = super::gn::accumulate(
-            &super::gn::Inputs {
-                live: &live[0],
-                reference: &previous[0],
-                photo: &previous[0],
-                t_photo_ref: None,
-                light: Some((&relighter, &albedo)),
-                stride: 1,
-            },
-            t_ref_live,
-            &w,
-        );
+        let s = super::gn::accumulate(&level0(live, previous, Some((&relighter, &albedo))), t_ref_live, &w);
         (s.rgb_sse / s.rgb_n as f64).sqrt()
     };
     let (rms_raw, rms_restored) = (rms(&raw), rms(&restored));
@@ -378,18 +362,7 @@ fn photometric_bias(ph: &capsule_slam_phantom::Phantom, frames: &[capsule_slam_f
             let live = super::frames::live(&ab[1], &ph.camera, 3, &prep, None, margin_px);
             let t_ref_live = ab[0].gt_t_world_cam.unwrap().inverse() * ab[1].gt_t_world_cam.unwrap();
             let albedo = relighter.live_albedo(&live[0]);
-            let s = super::gn::accumulate(
-                &super::gn::Inputs {
-                    live: &live[0],
-                    reference: &previous[0],
-                    photo: &previous[0],
-                    t_photo_ref: None,
-                    light: Some((&relighter, &albedo)),
-                    stride: 1,
-                },
-                &t_ref_live,
-                &w,
-            );
+            let s = super::gn::accumulate(&level0(&live, &previous, Some((&relighter, &albedo))), &t_ref_live, &w);
             assert_eq!(s.icp_n, 0);
             let d = s.step().unwrap();
             (d.fixed_rows::<3>(3).norm().to_degrees(), d.fixed_rows::<3>(0).norm() * 1e3)
