@@ -14,9 +14,12 @@
 //! A keyframe is replaced by the current frame when it has served `max_frames` frames, when the
 //! camera has moved more than `max_translation_m` or turned more than `max_rotation_rad` from
 //! it, or when the photometric term finds fewer than `min_overlap` of the pixels it found on
-//! the keyframe's first frame. The pose between the keyframe and the previous camera is kept as
-//! the chain of the tracked relative motions (not from world poses, which loop closure and the
-//! non-rigid tracker may move).
+//! the keyframe's first frame ([`Keyframe::advance`]); after a lost frame; and where the
+//! previous frame disagrees with the keyframe's solution, the frame then finished against the
+//! previous frame (`register.rs`, `keyframe_max_disagreement`: on a moving wall a keyframe some
+//! frames old reads the wall's motion since as the camera's). The pose between the keyframe and
+//! the previous camera is kept as the chain of the tracked relative motions (not from world
+//! poses, which loop closure and the non-rigid tracker may move).
 
 use std::sync::Arc;
 

@@ -88,8 +88,8 @@ capsule_slam_framework::plugin_params! {
         pub motion_model: MotionModel = MotionModel::ConstantVelocity; unit = "-";
         /// Photometric reference for measured depth: `previous-frame` (robust to the moving
         /// light), `keyframe` (the last keyframe, `keyframe.rs`) or `model`. With the 5 % smooth
-        /// depth error a keyframe tracked worse on presets 4 and 5 (`docs/results/depth.md`, "A keyframe
-        /// as the photometric reference").
+        /// depth error a keyframe tracked better on presets 1 and 5 and worse on 4
+        /// (`docs/results/depth.md`, "A keyframe as the photometric reference").
         pub rgb_reference: RgbReference = RgbReference::PreviousFrame; unit = "-";
         /// The same for depth estimated from the image, where the photometric term carries the
         /// tracking. A keyframe lowered the monocular ATE on 4 of the 7 rigid presets (mean

@@ -185,12 +185,11 @@ impl IcpRgb {
     }
 
     /// Whether the registration to a keyframe (`photo` with a transform; `keyframe.rs`)
-    /// disagrees with the `previous` frame's pyramid: the Gauss-Newton step of the term against the previous
-    /// frame at the keyframe's solution, `δᵀAδ` in its own information, above
+    /// disagrees with the `previous` frame's pyramid: the Gauss-Newton step of the term against
+    /// the previous frame at the keyframe's solution, `δᵀAδ` in its own information, above
     /// `keyframe_max_disagreement`. The frame is then finished against the previous frame (level
     /// 0, from the keyframe's solution) and the keyframe is stale: on a moving wall a keyframe
     /// some frames old reads the wall's motion since as the camera's.
-    #[allow(clippy::too_many_arguments, reason = "the registration's pyramids, relighting and state")]
     fn keyframe_disagrees(
         &self,
         [live, reference]: [&[Level]; 2],
