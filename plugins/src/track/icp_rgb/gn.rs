@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::frames::Level;
 use super::relight::Relighter;
-use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, projected_gradient, residual_sigma, rgb_jacobian, twist_row};
+use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, projected_gradient, residual_sigma, twist_row};
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
 use capsule_slam_framework::GrayF32;
@@ -247,59 +247,31 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     if w.w_rgb <= 0.0 || live.gray.at(x, y) <= 0.0 {
         return;
     }
-    match &inp.t_photo_ref {
-        Some(t_photo_ref) => return keyframe_row(inp, (x, y), (&s, blended), t_ref_live, t_photo_ref, (w, sigma_live), sys),
-        None if !inside => return,
-        None => {}
+    if inp.t_photo_ref.is_none() && !inside {
+        return;
     }
-    let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
     // A point moved by λ along the ray: the light's fall-off (∝ 1/distance², the light beside the
-    // lens) makes its albedo λ² the live one's.
-    let (s, uf, vf, ui, vi, lambda) = match blended {
-        Some((sp, lambda)) => {
-            // Projected again; the Jacobian holds λ fixed.
-            let (uf, vf) = (cam.fx * sp.x / sp.z + cam.cx, cam.fy * sp.y / sp.z + cam.cy);
-            if !(uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh) {
-                return;
-            }
-            (sp, uf, vf, (uf + 0.5) as usize, (vf + 0.5) as usize, lambda)
-        }
-        None => (s, uf, vf, ui, vi, 1.0),
-    };
-    let Some((ir, gx, gy)) = reference_sample(inp.photo, (ui, vi), (uf, vf), s.z, gate_m, w.rgb_min_gradient) else { return };
-    let predicted = match inp.light {
-        None => f64::from(live.gray.at(x, y)),
-        Some((l, albedo)) => match live_normal.and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, t_ref_live, (uf, vf), &s)) {
-            Some(i) => i,
-            None => return,
-        },
-    };
-    let r = f64::from(ir) - predicted;
-    let j = rgb_jacobian(&s, (gx, gy), cam.fx, cam.fy);
-    let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
-    sys.add_row(&j, r, wt);
-    sys.rgb_n += 1;
-    sys.rgb_sse += r * r;
+    // lens) makes its albedo λ² the live one's. Projected again; the Jacobian holds λ fixed.
+    photometric_row(inp, (x, y), blended.unwrap_or((s, 1.0)), t_ref_live, (w, sigma_live), sys);
 }
 
-/// The photometric row of live pixel `(x, y)` against a keyframe (`inp.t_photo_ref`): the live
-/// point `s` (reference frame; moved along its ray where `blended`) carried into the keyframe's
-/// camera, sampled and relit there; the row is the keyframe's projected gradient brought back
-/// to the reference frame, `a_ref = R_photo_refᵀ a_photo`, so that the increment stays the one
-/// on `t_ref_live` (a fixed transform composed on the left).
-fn keyframe_row(
+/// The photometric row of live pixel `(x, y)` whose point `s` (reference frame; moved by `λ`
+/// along its ray where blended) is sampled and relit in the photometric reference: in the
+/// reference camera, or carried into a keyframe's by `inp.t_photo_ref`. Against a keyframe the
+/// row is its projected gradient brought back to the reference frame, `a_ref = R_photo_refᵀ
+/// a_photo`, so that the increment stays the one on `t_ref_live` (a fixed transform composed on
+/// the left).
+fn photometric_row(
     inp: &Inputs<'_>,
     (x, y): (usize, usize),
-    (s, blended): (&Vector3<f64>, Option<(Vector3<f64>, f64)>),
+    (s, lambda): (Vector3<f64>, f64),
     t_ref_live: &Iso3,
-    t_photo_ref: &Iso3,
     (w, sigma_live): (&Weights, f64),
     sys: &mut System,
 ) {
     let (live, photo) = (inp.live, inp.photo);
     let cam = &photo.cam;
-    let (s_ref, lambda) = blended.unwrap_or((*s, 1.0));
-    let p = t_photo_ref * nalgebra::Point3::from(s_ref);
+    let p = inp.t_photo_ref.map_or(s, |t| (t * nalgebra::Point3::from(s)).coords);
     if p.z <= 0.0 {
         return;
     }
@@ -314,9 +286,9 @@ fn keyframe_row(
     let predicted = match inp.light {
         None => f64::from(live.gray.at(x, y)),
         Some((l, albedo)) => {
-            let t_photo_live = t_photo_ref * t_ref_live;
-            let lit = normal(&live.normals, x, y)
-                .and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, &t_photo_live, (uf, vf), &p.coords));
+            let t_photo_live = inp.t_photo_ref.map_or(*t_ref_live, |t| t * t_ref_live);
+            let lit =
+                normal(&live.normals, x, y).and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, &t_photo_live, (uf, vf), &p));
             match lit {
                 Some(i) => i,
                 None => return,
@@ -324,8 +296,8 @@ fn keyframe_row(
         }
     };
     let r = f64::from(ir) - predicted;
-    let a_ref = t_photo_ref.rotation.inverse() * projected_gradient(&p.coords, (gx, gy), cam.fx, cam.fy);
-    let j = twist_row(&s_ref, &a_ref);
+    let a = projected_gradient(&p, (gx, gy), cam.fx, cam.fy);
+    let j = twist_row(&s, &inp.t_photo_ref.map_or(a, |t| t.rotation.inverse() * a));
     let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
     sys.add_row(&j, r, wt);
     sys.rgb_n += 1;
