@@ -187,10 +187,16 @@ impl NearLightSfs {
 /// noise of dark pixels, whose logarithm is biased) and its share of usable pixels.
 fn cell_data(grid: &Grid, irradiance: &[Option<Pixel>], w: usize) -> Vec<CellData> {
     let mut sum = vec![(0.0, 0usize); grid.cells.len()];
-    for (k, v) in irradiance.iter().enumerate() {
-        if let (Some(px), Some(c)) = (v, grid.cell_of(k % w, k / w)) {
-            sum[c].0 += px.e;
-            sum[c].1 += 1;
+    // Row by row, with each column's grid column looked up (no division per pixel); the pixels
+    // are summed in the same order as before.
+    let grid_col: Vec<usize> = (0..w).map(|x| x / grid.cell_px).collect();
+    for (y, row) in irradiance.chunks(w.max(1)).enumerate() {
+        let cells = &grid.index[(y / grid.cell_px) * grid.cols..];
+        for (v, &gc) in row.iter().zip(&grid_col) {
+            if let (Some(px), Some(c)) = (v, cells[gc]) {
+                sum[c].0 += px.e;
+                sum[c].1 += 1;
+            }
         }
     }
     let area = (grid.cell_px * grid.cell_px) as f64;
@@ -239,7 +245,7 @@ fn solve_levels(
     cam: &PinholeCamera,
     previous: Option<Vec<f64>>,
 ) -> Result<Option<Solved>, StageError> {
-    let photometry = Photometry { light, min_cos: p.min_cos };
+    let photometry = Photometry::new(light, p.min_cos);
     let smoothness = |grid: &Grid| p.smoothness * (cam.fx / grid.cell_px as f64).powi(2);
     let mut warm = previous.filter(|_| p.warm_start);
     let (mut factorisations, mut coarsest) = (0, None);
