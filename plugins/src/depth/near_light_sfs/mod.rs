@@ -65,6 +65,8 @@ pub struct NearLightSfs {
     decode: [f64; 256],
     /// The last frame's coarsest log-depth grid (warm start).
     previous: Option<Vec<f64>>,
+    /// Step 1's per-pixel buffer, kept from frame to frame.
+    irradiance: Vec<Option<Pixel>>,
     /// Sparse factorisations of the last frame's solve.
     factorisations: usize,
     /// Whether the light came from a calibration (else the depth's scale is unknown).
@@ -115,7 +117,7 @@ impl NearLightSfs {
     /// An estimator with a given light model.
     pub fn with_light(params: NearLightSfsParams, light: LightModel) -> Self {
         let decode = std::array::from_fn(|v| light.decode(v as f64 / 255.0));
-        Self { params, light, tables: None, decode, previous: None, factorisations: 0, calibrated: true, pending_warning: None }
+        Self { params, light, tables: None, decode, previous: None, irradiance: Vec::new(), factorisations: 0, calibrated: true, pending_warning: None }
     }
 
     fn tables(&mut self, cam: &PinholeCamera) -> Result<&Tables, StageError> {
@@ -163,23 +165,25 @@ impl NearLightSfs {
         }
         self.factorisations = 0;
         let previous = self.previous.take();
+        let mut irradiance = std::mem::take(&mut self.irradiance);
         let tables = self.tables(cam)?;
         let (w, h) = image.size();
         let map_albedo = map_albedo.filter(|a| p.albedo_source == AlbedoSource::Map && a.size() == (w, h));
         // 1. Per usable pixel: L / V, E, the confidence of its signal level, its albedo's origin.
         let input = PixelInput { image, ignore, cam, map_albedo, divided, decode: &decode, spot_exponent };
-        let irradiance = pixels::irradiance(&input, &light, &tables.inv_vignetting, &p);
+        pixels::irradiance(&input, &light, &tables.inv_vignetting, &p, &mut irradiance);
         let map_albedo_pixels = irradiance.iter().flatten().filter(|px| px.from_map).count();
         // 2. Coarse to fine on the grids.
         let Some(solved) = solve_levels(&tables.levels, &irradiance, w, &light, &p, cam, previous)? else {
             return Ok(SfsOutput::empty(w, h));
         };
         // 3. Per pixel: bilinear over the cell centres that exist.
-        let out = pixels::per_pixel(&irradiance, &tables.fine_taps, &solved, &p);
-        let channel = |i: usize| GrayF32::from_vec(w, h, out.iter().map(|o| o[i]).collect()).map_err(|e| StageError::invalid_input(e.to_string()));
+        let mut out = SfsOutput { map_albedo_pixels, ..SfsOutput::empty(w, h) };
+        pixels::per_pixel(&irradiance, &tables.fine_taps, &solved, &p, [out.depth_m.data_mut(), out.confidence.data_mut(), out.albedo.data_mut()]);
+        self.irradiance = irradiance;
         self.previous = Some(solved.coarsest);
         self.factorisations = solved.factorisations;
-        Ok(SfsOutput { depth_m: channel(0)?, confidence: channel(1)?, albedo: channel(2)?, map_albedo_pixels })
+        Ok(out)
     }
 }
 

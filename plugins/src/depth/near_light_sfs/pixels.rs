@@ -60,9 +60,15 @@ pub(super) struct PixelInput<'a> {
 
 /// Step 1: per usable pixel (in the field of view, not masked, not saturated, not too dark)
 /// `L / V`, `E = L / (V ρ) − ambient`, the confidence of its signal level and whether its
-/// albedo came from the map.
-pub(super) fn irradiance(input: &PixelInput, light: &LightModel, inv_vignetting: &[Option<f64>], p: &NearLightSfsParams) -> Vec<Option<Pixel>> {
+/// albedo came from the map; into `out` (resized to the image, its buffer kept from frame to
+/// frame), row by row.
+pub(super) fn irradiance(input: &PixelInput, light: &LightModel, inv_vignetting: &[Option<f64>], p: &NearLightSfsParams, out: &mut Vec<Option<Pixel>>) {
     let (w, h) = input.image.size();
+    out.clear();
+    out.resize(w * h, None);
+    if w == 0 {
+        return;
+    }
     let cam = input.cam;
     let rho_of = |x: usize, y: usize| -> (f64, bool) {
         match input.map_albedo.map(|a| f64::from(a.at(x, y))) {
@@ -70,65 +76,68 @@ pub(super) fn irradiance(input: &PixelInput, light: &LightModel, inv_vignetting:
             _ => (p.albedo, false),
         }
     };
-    (0..w * h)
-        .into_par_iter()
-        .map(|k| {
-            let (x, y) = (k % w, k / w);
-            let inv_v = match input.divided {
-                None => inv_vignetting[k]?,
-                Some(d) => {
-                    inv_vignetting[k]?;
-                    let back = match d.falloff {
-                        Falloff::LensAndLight => 1.0,
-                        Falloff::FlatField => Falloff::flat_to_lens_and_light(cos_alpha(cam, x as f64, y as f64)),
-                    };
-                    back / d.linear_scale
-                }
-            };
-            if input.ignore.is_some_and(|m| m.at(x, y)) {
-                return None;
+    let pixel = |x: usize, y: usize| {
+        let k = y * w + x;
+        let inv_v = match input.divided {
+            None => inv_vignetting[k]?,
+            Some(d) => {
+                inv_vignetting[k]?;
+                let back = match d.falloff {
+                    Falloff::LensAndLight => 1.0,
+                    Falloff::FlatField => Falloff::flat_to_lens_and_light(cos_alpha(cam, x as f64, y as f64)),
+                };
+                back / d.linear_scale
             }
-            let c = input.image.pixel(x, y);
-            if c.iter().any(|v| *v >= p.saturation) {
-                return None;
-            }
-            let lum: f64 = (0..3).map(|i| NTSC_WEIGHTS[i] * input.decode[usize::from(c[i])]).sum();
-            if lum < p.min_luminance {
-                return None;
-            }
-            let (rho, from_map) = rho_of(x, y);
-            let radiance = lum * inv_v;
-            let ambient = match input.divided {
-                Some(_) if input.spot_exponent != 0.0 => light.ambient / cos_alpha(cam, x as f64, y as f64).powf(input.spot_exponent),
-                _ => light.ambient,
-            };
-            let e = radiance / rho - ambient;
-            (e > 1e-9).then(|| Pixel { radiance, e, ambient, conf: ((lum - p.min_luminance) / 0.02).clamp(0.0, 1.0) as f32, from_map })
-        })
-        .collect()
+        };
+        if input.ignore.is_some_and(|m| m.at(x, y)) {
+            return None;
+        }
+        let c = input.image.pixel(x, y);
+        if c.iter().any(|v| *v >= p.saturation) {
+            return None;
+        }
+        let lum: f64 = (0..3).map(|i| NTSC_WEIGHTS[i] * input.decode[usize::from(c[i])]).sum();
+        if lum < p.min_luminance {
+            return None;
+        }
+        let (rho, from_map) = rho_of(x, y);
+        let radiance = lum * inv_v;
+        let ambient = match input.divided {
+            Some(_) if input.spot_exponent != 0.0 => light.ambient / cos_alpha(cam, x as f64, y as f64).powf(input.spot_exponent),
+            _ => light.ambient,
+        };
+        let e = radiance / rho - ambient;
+        (e > 1e-9).then(|| Pixel { radiance, e, ambient, conf: ((lum - p.min_luminance) / 0.02).clamp(0.0, 1.0) as f32, from_map })
+    };
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| row.iter_mut().enumerate().for_each(|(x, o)| *o = pixel(x, y)));
 }
 
-/// Step 3: per pixel `[depth m, confidence, observed albedo]`, bilinear over the finest grid's
-/// cell centres (plus, with `detail = "shading"`, the pixel's brightness deviation
-/// `½ (ln M − ln E)`); zeros where there is none or it falls outside the depth range.
-pub(super) fn per_pixel(irradiance: &[Option<Pixel>], fine_taps: &[Bilinear], solved: &Solved, p: &NearLightSfsParams) -> Vec<[f32; 3]> {
+/// Step 3: per pixel the depth (m), the confidence and the observed albedo into `[depth,
+/// confidence, albedo]` (each one value per pixel), bilinear over the finest grid's cell centres
+/// (plus, with `detail = "shading"`, the pixel's brightness deviation `½ (ln M − ln E)`); zeros
+/// where there is none or it falls outside the depth range.
+pub(super) fn per_pixel(
+    irradiance: &[Option<Pixel>],
+    fine_taps: &[Bilinear],
+    solved: &Solved,
+    p: &NearLightSfsParams,
+    [depth, confidence, albedo]: [&mut [f32]; 3],
+) {
     let shading = p.detail == Detail::Shading;
     let (lo, hi) = (p.min_depth_m, p.max_depth_m);
-    (0..irradiance.len())
-        .into_par_iter()
-        .map(|k| {
-            let Some(px) = irradiance[k] else { return [0.0; 3] };
-            let Some([z, m, dw]) = fine_taps[k].apply(|c| [solved.z_cell[c], solved.ln_m[c], solved.data[c].weight]) else { return [0.0; 3] };
-            let mut z_px = z;
-            if shading && dw > 0.0 {
-                z_px *= (0.5 * (m - px.e.ln())).exp();
-            }
-            let d = z_px as f32;
-            // The albedo that explains the pixel on the smooth solved surface (on the map's
-            // surface at the last pose instead it comes out worse: the map lags a frame and
-            // carries the tracking drift).
-            let rho = (px.radiance / (m.exp() + px.ambient)) as f32;
-            if d.is_finite() && d >= lo && d <= hi { [d, px.conf * dw.min(1.0) as f32, if rho.is_finite() { rho.max(0.0) } else { 0.0 }] } else { [0.0; 3] }
-        })
-        .collect()
+    let pixel = |k: usize| {
+        let Some(px) = irradiance[k] else { return [0.0; 3] };
+        let Some([z, m, dw]) = fine_taps[k].apply(|c| [solved.z_cell[c], solved.ln_m[c], solved.data[c].weight]) else { return [0.0; 3] };
+        let mut z_px = z;
+        if shading && dw > 0.0 {
+            z_px *= (0.5 * (m - px.e.ln())).exp();
+        }
+        let d = z_px as f32;
+        // The albedo that explains the pixel on the smooth solved surface (on the map's
+        // surface at the last pose instead it comes out worse: the map lags a frame and
+        // carries the tracking drift).
+        let rho = (px.radiance / (m.exp() + px.ambient)) as f32;
+        if d.is_finite() && d >= lo && d <= hi { [d, px.conf * dw.min(1.0) as f32, if rho.is_finite() { rho.max(0.0) } else { 0.0 }] } else { [0.0; 3] }
+    };
+    (depth, confidence, albedo).into_par_iter().enumerate().for_each(|(k, (d, c, a))| [*d, *c, *a] = pixel(k));
 }
