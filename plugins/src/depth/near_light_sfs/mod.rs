@@ -29,6 +29,7 @@
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::frame::DividedFalloff;
 use capsule_slam_framework::light::LightModel;
+use capsule_slam_framework::light::vignetting::cos_alpha;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{CameraFrame, Context, DepthEstimate, DepthEstimator, DepthMap, GrayF32, Mask, Plugin, Rgb8, StageError, register};
 
@@ -84,6 +85,9 @@ struct Tables {
     fine_taps: Vec<Bilinear>,
     /// `1 / V(u)` per pixel; `None` outside the field of view.
     inv_vignetting: Vec<Option<f64>>,
+    /// Per pixel `cos α` (the ray's angle to the axis) and `cos^s α`, the LED profile with the
+    /// light's spot exponent s, for images whose fall-off a preprocessor divided out.
+    cos_alpha: Vec<[f64; 2]>,
 }
 
 impl Plugin for NearLightSfs {
@@ -135,7 +139,14 @@ impl NearLightSfs {
                 Some(g) => (0..w * h).map(|k| g.bilinear((k % w) as f64, (k / w) as f64)).collect(),
                 None => vec![Bilinear::default(); w * h],
             };
-            self.tables = Some(Tables { camera: cam.clone(), levels, fine_taps, inv_vignetting });
+            let spot = self.light.spot_exponent;
+            let cos_alpha = (0..w * h)
+                .map(|k| {
+                    let c = cos_alpha(cam, (k % w) as f64, (k / w) as f64);
+                    [c, c.powf(spot)]
+                })
+                .collect();
+            self.tables = Some(Tables { camera: cam.clone(), levels, fine_taps, inv_vignetting, cos_alpha });
         }
         self.tables.as_ref().ok_or_else(|| StageError::invalid_input("near-light-sfs: no camera tables".to_string()))
     }
@@ -170,8 +181,8 @@ impl NearLightSfs {
         let (w, h) = image.size();
         let map_albedo = map_albedo.filter(|a| p.albedo_source == AlbedoSource::Map && a.size() == (w, h));
         // 1. Per usable pixel: L / V, E, the confidence of its signal level, its albedo's origin.
-        let input = PixelInput { image, ignore, cam, map_albedo, divided, decode: &decode, spot_exponent };
-        pixels::irradiance(&input, &light, &tables.inv_vignetting, &p, &mut irradiance);
+        let input = PixelInput { image, ignore, map_albedo, divided, decode: &decode, spot_exponent };
+        pixels::irradiance(&input, &light, (&tables.inv_vignetting, &tables.cos_alpha), &p, &mut irradiance);
         let map_albedo_pixels = irradiance.iter().flatten().filter(|px| px.from_map).count();
         // 2. Coarse to fine on the grids.
         let Some(solved) = solve_levels(&tables.levels, &irradiance, w, &light, &p, cam, previous)? else {

@@ -1,11 +1,9 @@
 //! The per-pixel steps of `near-light-sfs`: each usable pixel's irradiance term before the grid
 //! solve (step 1), and each pixel's depth, confidence and observed albedo after it (step 3).
 
-use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::frame::{DividedFalloff, Falloff};
 use capsule_slam_framework::image::NTSC_WEIGHTS;
 use capsule_slam_framework::light::LightModel;
-use capsule_slam_framework::light::vignetting::cos_alpha;
 use capsule_slam_framework::{GrayF32, Mask, Rgb8};
 use rayon::prelude::*;
 
@@ -46,7 +44,6 @@ pub(super) struct Pixel {
 pub(super) struct PixelInput<'a> {
     pub image: &'a Rgb8,
     pub ignore: Option<&'a Mask>,
-    pub cam: &'a PinholeCamera,
     /// The map's albedo at the last pose (only with `albedo_source = "map"`, of the image's size).
     pub map_albedo: Option<&'a GrayF32>,
     /// The fall-off a preprocessor divided out of the image.
@@ -62,14 +59,22 @@ pub(super) struct PixelInput<'a> {
 /// `L / V`, `E = L / (V ρ) − ambient`, the confidence of its signal level and whether its
 /// albedo came from the map; into `out` (resized to the image, its buffer kept from frame to
 /// frame), row by row.
-pub(super) fn irradiance(input: &PixelInput, light: &LightModel, inv_vignetting: &[Option<f64>], p: &NearLightSfsParams, out: &mut Vec<Option<Pixel>>) {
+///
+/// `cos_alpha` holds each pixel's `[cos α, cos^s α]` (s: `input.spot_exponent`), which the
+/// divided fall-offs need.
+pub(super) fn irradiance(
+    input: &PixelInput,
+    light: &LightModel,
+    (inv_vignetting, cos_alpha): (&[Option<f64>], &[[f64; 2]]),
+    p: &NearLightSfsParams,
+    out: &mut Vec<Option<Pixel>>,
+) {
     let (w, h) = input.image.size();
     out.clear();
     out.resize(w * h, None);
     if w == 0 {
         return;
     }
-    let cam = input.cam;
     let rho_of = |x: usize, y: usize| -> (f64, bool) {
         match input.map_albedo.map(|a| f64::from(a.at(x, y))) {
             Some(r) if r > 1e-3 && r.is_finite() => (r, true),
@@ -84,7 +89,7 @@ pub(super) fn irradiance(input: &PixelInput, light: &LightModel, inv_vignetting:
                 inv_vignetting[k]?;
                 let back = match d.falloff {
                     Falloff::LensAndLight => 1.0,
-                    Falloff::FlatField => Falloff::flat_to_lens_and_light(cos_alpha(cam, x as f64, y as f64)),
+                    Falloff::FlatField => Falloff::flat_to_lens_and_light(cos_alpha[k][0]),
                 };
                 back / d.linear_scale
             }
@@ -103,7 +108,7 @@ pub(super) fn irradiance(input: &PixelInput, light: &LightModel, inv_vignetting:
         let (rho, from_map) = rho_of(x, y);
         let radiance = lum * inv_v;
         let ambient = match input.divided {
-            Some(_) if input.spot_exponent != 0.0 => light.ambient / cos_alpha(cam, x as f64, y as f64).powf(input.spot_exponent),
+            Some(_) if input.spot_exponent != 0.0 => light.ambient / cos_alpha[k][1],
             _ => light.ambient,
         };
         let e = radiance / rho - ambient;
