@@ -282,8 +282,13 @@ fn solve_levels(
                 .collect(),
         };
         let iterations = if solved.is_none() { p.iterations } else { p.iterations.min(p.fine_iterations) };
-        let (residual, n_factor) =
-            solve(grid, &photometry, &data, &mut zeta, &SolveSettings { iterations, smoothness: smoothness(grid), tolerance: p.tolerance })?;
+        let (residual, n_factor) = solve(
+            grid,
+            &photometry,
+            &data,
+            &mut zeta,
+            &SolveSettings { iterations, smoothness: smoothness(grid), tolerance: p.tolerance, line_search: p.line_search },
+        )?;
         if solved.is_none() {
             coarsest = Some(zeta.clone());
         }

@@ -32,6 +32,12 @@ capsule_slam_framework::plugin_params! {
         pub warm_start: bool = false; unit = "-";
         /// Stop when an iteration lowers the cost by less than this fraction.
         pub tolerance: f64 = 0.01; unit = "-"; range = 0.0..=1.0;
+        /// A Levenberg-Marquardt step that does not lower the cost is tried at half and a
+        /// quarter of its length before the damping grows (a new sparse factorisation each
+        /// time): the damping grows by 10× from about 10⁻⁴ of the diagonal, so the first
+        /// retries gave nearly the same overshooting step. Off: damping only (before
+        /// `docs/results/depth.md`, "Speed of `near-light-sfs`").
+        pub line_search: bool = true; unit = "-";
         /// Weight λ of the curvature prior on the log depth, per radian² of view angle: each
         /// cell's second difference of ln z is weighted by λ / h², h = cell_px / fx the cell's
         /// angle, so the prior means the same at any resolution (default: the lowest textured

@@ -272,6 +272,8 @@ pub(super) struct SolveSettings {
     pub smoothness: f64,
     /// Stop when an iteration lowers the cost by less than this fraction.
     pub tolerance: f64,
+    /// Try the step's half and quarter before damping it more.
+    pub line_search: bool,
 }
 
 /// The cost `Σ w_c r_c² + λ² Σ (Δ²ζ)²` of a log-depth field.
@@ -315,14 +317,24 @@ pub(super) fn solve(
             factorisations += 1;
             let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
             llt.solve_in_place(&mut step).map_err(solver_error)?;
-            let trial: Vec<f64> = (0..n).map(|i| zeta[i] + step[i]).collect();
-            let c = cost(grid, photometry, data, &trial, settings.smoothness);
-            if c.is_finite() && c < current {
-                zeta.copy_from_slice(&trial);
-                converged = c > current * (1.0 - settings.tolerance);
-                current = c;
-                mu = (mu * 0.3).max(1e-6);
-                accepted = true;
+            // The step, then (before damping more, which needs a new factorisation) its half and
+            // quarter along the same direction.
+            let shortened = [1.0, 0.5, 0.25].into_iter().take(if settings.line_search { 3 } else { 1 });
+            for (i, scale) in shortened.enumerate() {
+                let trial: Vec<f64> = (0..n).map(|k| zeta[k] + scale * step[k]).collect();
+                let c = cost(grid, photometry, data, &trial, settings.smoothness);
+                if c.is_finite() && c < current {
+                    zeta.copy_from_slice(&trial);
+                    converged = c > current * (1.0 - settings.tolerance);
+                    current = c;
+                    if i == 0 {
+                        mu = (mu * 0.3).max(1e-6);
+                    }
+                    accepted = true;
+                    break;
+                }
+            }
+            if accepted {
                 break;
             }
             mu *= 10.0;
@@ -463,8 +475,27 @@ mod tests {
         let at = points(&grid.cells, &truth, 0.0);
         let data: Vec<CellData> = (0..grid.cells.len()).map(|c| CellData { ln_e: ph.residual(&grid.cells, &at, c, 0.0), weight: 1.0 }).collect();
         let mut zeta: Vec<f64> = truth.iter().map(|z| z + 0.05).collect();
-        solve(&grid, &ph, &data, &mut zeta, &SolveSettings { iterations: 20, smoothness: 0.0, tolerance: 0.0 }).unwrap();
+        solve(&grid, &ph, &data, &mut zeta, &SolveSettings { iterations: 20, smoothness: 0.0, tolerance: 0.0, line_search: false }).unwrap();
         let worst = zeta.iter().zip(&truth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         assert!(worst < 1e-3, "a 5 % offset must be undone: worst log error {worst}");
+    }
+
+    #[test]
+    fn the_line_search_reaches_the_truth_from_far_off_starts() {
+        // Starts a tenth to half of the depth off, some tilted: full Gauss-Newton steps overshoot
+        // there, and the shortened steps must still end at the truth.
+        let grid = Grid::new(&cam(), 4).unwrap();
+        let l = light();
+        let ph = Photometry::new(&l, 0.01);
+        let truth = field(&grid);
+        let at = points(&grid.cells, &truth, 0.0);
+        let data: Vec<CellData> = (0..grid.cells.len()).map(|c| CellData { ln_e: ph.residual(&grid.cells, &at, c, 0.0), weight: 1.0 }).collect();
+        for (offset, tilt) in [(0.1, 0.0), (0.3, 0.0), (0.6, 0.0), (-0.3, 0.0), (-0.6, 0.0), (0.3, 1.0)] {
+            let mut zeta: Vec<f64> = truth.iter().zip(&grid.cells).map(|(z, c)| z + offset + tilt * c.ray.x * c.ray.x).collect();
+            let settings = SolveSettings { iterations: 30, smoothness: 0.0, tolerance: 0.0, line_search: true };
+            solve(&grid, &ph, &data, &mut zeta, &settings).unwrap();
+            let worst = zeta.iter().zip(&truth).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(worst < 1e-6, "from {offset} + {tilt} x²: worst log error {worst}");
+        }
     }
 }
