@@ -12,8 +12,8 @@
 //! with `ln E_c` the mean log irradiance of the cell's usable pixels (`E = L / (V ρ) − ambient`).
 //! A curvature prior `λ (ζ_{i−1} − 2 ζ_i + ζ_{i+1})` along both grid axes removes the
 //! checkerboard null space of central differences and fills cells without data. Gauss-Newton
-//! with Levenberg damping (a rejected step is tried at half and a quarter of its length before
-//! the damping grows, `line_search`) minimises `Σ w_c r_c² + λ² Σ (Δ²ζ)²` (w_c: the cell's share of
+//! with Levenberg damping (with `line_search`, a rejected step is tried at half and a quarter of
+//! its length before the damping grows) minimises `Σ w_c r_c² + λ² Σ (Δ²ζ)²` (w_c: the cell's share of
 //! usable pixels); the normal equations are solved by faer's sparse Cholesky
 //! ([`SparseLlt`], supernodal: 2.3× faster than the simplicial method faer's heuristic picks for
 //! this grid), the symbolic analysis once per camera and the numeric factorisation, into the
