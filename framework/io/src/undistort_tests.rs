@@ -94,9 +94,12 @@ fn a_round_field_of_view_becomes_the_inscribed_circle_of_what_is_seen() {
     let c = camera(Some(pincushion), Some(55.0));
     let u = Undistortion::new(&c);
     let r = u.camera().fov_radius_px.expect("a round field of view stays round");
-    // A ray at radius r lands at r (1 + 0.2 (r/f)²) in the source: 55 px there.
+    // A ray at radius r lands at r (1 + 0.2 (r/f)²) in the source, and the colour kernel reads
+    // up to 2 px further along x and y: 2√2 px beyond it on a diagonal, where it must still be
+    // inside the 55 px.
     let f = 80.0;
-    let expected = (0..2000).map(|i| f64::from(i) * 0.05).filter(|r| r * (1.0 + 0.2 * (r / f).powi(2)) <= 55.0).fold(0.0, f64::max);
+    let reach = 55.0 - 2.0 * 2f64.sqrt();
+    let expected = (0..2000).map(|i| f64::from(i) * 0.05).filter(|r| r * (1.0 + 0.2 * (r / f).powi(2)) <= reach).fold(0.0, f64::max);
     assert!((r - expected).abs() < 1.5, "inscribed radius {r}, expected about {expected}");
     let mask = u.out_of_view();
     for y in 0..c.height {
@@ -149,4 +152,28 @@ fn fine_texture_keeps_its_contrast_better_than_a_bilinear_sample() {
     let (cubic, linear) = ((cubic / n).sqrt(), (linear / n).sqrt());
     // Measured: 13.1 against 22.0 grey levels RMS.
     assert!(cubic < 0.7 * linear, "bicubic {cubic}, bilinear {linear} grey levels RMS");
+}
+
+#[test]
+fn no_colour_kernel_reads_beyond_the_round_field_of_view() {
+    // A uniform wall inside the source's round field of view, black beyond it (as a capsule
+    // camera's frames are): every pixel the undistorted image sees is the wall's grey. A kernel
+    // reaching the black would darken a fixed ring at the rim, which a moving camera's
+    // photometric term reads as texture that does not move.
+    for lens in [BARREL, FISHEYE, LensModel::brown_conrady([-0.01, 0.0, 0.0, 0.0, 0.0])] {
+        let c = camera(Some(lens), Some(50.0));
+        let rgb = Rgb8::from_fn(c.width, c.height, |x, y| if c.in_fov(x as f64, y as f64) { [200; 3] } else { [0; 3] });
+        let u = Undistortion::new(&c);
+        let out = u.rgb(&rgb);
+        let mut seen = 0;
+        for y in 0..c.height {
+            for x in 0..c.width {
+                if !u.out_of_view().at(x, y) {
+                    seen += 1;
+                    assert_eq!(out.pixel(x, y), [200; 3], "{lens:?}: ({x}, {y})");
+                }
+            }
+        }
+        assert!(seen > 5000, "{lens:?}: {seen} pixels seen");
+    }
 }
