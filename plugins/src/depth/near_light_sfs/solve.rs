@@ -58,11 +58,18 @@ pub(super) struct Grid {
     pub index: Vec<Option<usize>>,
     /// Curvature rows `(a, centre, b)`.
     smooth_rows: Vec<[usize; 3]>,
-    /// Lower-triangle pattern of the normal matrix.
-    pattern: SparseColMat<usize, f64>,
-    /// The factorisation of that pattern, analysed once and refactorised by every solve on
-    /// this grid (locked for the solve: its buffers are reused).
-    llt: Mutex<SparseLlt>,
+    /// Where each entry of the normal matrix's lower triangle lives, and its diagonal's slots.
+    slots: Slots,
+    diag: Vec<usize>,
+    /// The normal matrix and its factorisation, analysed once and refilled and refactorised by
+    /// every solve on this grid (locked for the solve: its buffers are reused).
+    normal: Mutex<Normal>,
+}
+
+/// The normal matrix (lower triangle) and its sparse Cholesky factorisation.
+struct Normal {
+    a: SparseColMat<usize, f64>,
+    llt: SparseLlt,
 }
 
 fn solver_error(e: impl std::fmt::Display) -> StageError {
@@ -129,8 +136,10 @@ impl Grid {
             trips.push(Triplet::new(k, k, 0.0));
         }
         let pattern = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &trips).map_err(solver_error)?;
-        let llt = Mutex::new(SparseLlt::supernodal(pattern.symbolic()).map_err(solver_error)?);
-        Ok(Self { cell_px: s, cols, rows, cells, index, smooth_rows, pattern, llt })
+        let llt = SparseLlt::supernodal(pattern.symbolic()).map_err(solver_error)?;
+        let slots = Slots { col_ptr: pattern.symbolic().col_ptr().to_vec(), row_idx: pattern.symbolic().row_idx().to_vec() };
+        let diag = (0..n).map(|k| slots.at(k, k)).collect();
+        Ok(Self { cell_px: s, cols, rows, cells, index, smooth_rows, slots, diag, normal: Mutex::new(Normal { a: pattern, llt }) })
     }
 
     /// The pixel at a cell's centre.
@@ -297,14 +306,13 @@ pub(super) fn solve(
 ) -> Result<(Vec<f64>, usize), StageError> {
     let mut factorisations = 0;
     let n = grid.cells.len();
-    let mut a = grid.pattern.clone();
-    let slots = Slots { col_ptr: a.symbolic().col_ptr().to_vec(), row_idx: a.symbolic().row_idx().to_vec() };
-    let diag: Vec<usize> = (0..n).map(|k| slots.at(k, k)).collect();
-    let mut llt = grid.llt.lock().map_err(|_| solver_error("a solve on this grid panicked"))?;
+    let (slots, diag) = (&grid.slots, &grid.diag);
+    let mut normal = grid.normal.lock().map_err(|_| solver_error("a solve on this grid panicked"))?;
+    let Normal { a, llt } = &mut *normal;
     let mut mu = 1e-4;
     let mut current = cost(grid, photometry, data, zeta, settings.smoothness);
     for _ in 0..settings.iterations {
-        let g = assemble(grid, photometry, data, zeta, settings.smoothness, &slots, a.val_mut());
+        let g = assemble(grid, photometry, data, zeta, settings.smoothness, slots, a.val_mut());
         let base: Vec<f64> = diag.iter().map(|&s| a.val_mut()[s]).collect();
         // Levenberg-Marquardt: grow the damping until the step lowers the cost.
         let mut accepted = false;
