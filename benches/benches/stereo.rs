@@ -25,6 +25,7 @@ fn stereo(c: &mut Criterion) {
         masks: Masks::new(),
         right_masks: Masks::new(),
         photometry: Photometry::default(),
+        sample_share: None,
     };
     let mut est = StereoSgm::build(StereoSgmParams::default(), &BuildEnv::new(rig.clone(), None)).unwrap_or_else(|e| panic!("{e}"));
     let mut g = c.benchmark_group("stereo");

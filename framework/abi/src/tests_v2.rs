@@ -127,6 +127,7 @@ fn rgbd(index: usize) -> RgbdFrame {
         albedo: None,
         gt_t_world_cam: None,
         masks: Masks::new(),
+        sample_share: None,
         derived: Default::default(),
     }
 }

@@ -168,7 +168,19 @@ pub struct CameraFrame {
     pub right_masks: Masks,
     /// What the preprocessors did to the images' photometry.
     pub photometry: Photometry,
+    /// Where the reference image was resampled from a coarser sampling (an undistortion's
+    /// stretched outer ring), the source pixels behind each of its pixels, at most 1
+    /// ([`SampleShare`]); `None`: every pixel is a pixel of the sensor.
+    pub sample_share: Option<SampleShare>,
 }
+
+/// Per pixel, how many source pixels stand behind a pixel of a resampled image, clamped to 1:
+/// the determinant of the resampling map's Jacobian, `|∂(u_src, v_src) / ∂(u, v)|`. Where an
+/// undistortion stretches the lens's outer ring, one source pixel's noise and interpolation error
+/// spread over `1 / share` neighbouring pixels; a tracker that weighs each pixel's photometric
+/// residual by its share counts them once (the counterpart of the depth error's correlated
+/// blocks, [`RgbdFrame::depth_sigma_correlation_px`]). Shared by every frame of a sequence.
+pub type SampleShare = Arc<GrayF32>;
 
 impl CameraFrame {
     /// A mono frame with no depth, pose, masks or photometric corrections.
@@ -182,6 +194,7 @@ impl CameraFrame {
             masks: Masks::new(),
             right_masks: Masks::new(),
             photometry: Photometry::default(),
+            sample_share: None,
         }
     }
 }
@@ -279,6 +292,9 @@ pub struct RgbdFrame {
     pub gt_t_world_cam: Option<Iso3>,
     /// Masks of pixels to ignore.
     pub masks: Masks,
+    /// The colour image's source pixels per pixel where it was resampled
+    /// ([`CameraFrame::sample_share`]); `None`: 1 everywhere.
+    pub sample_share: Option<SampleShare>,
     /// Data derived from this frame, shared between stages.
     pub derived: Derived,
 }

@@ -295,6 +295,7 @@ impl Dataset {
             masks,
             right_masks: Masks::new(),
             photometry: Photometry::default(),
+            sample_share: self.undistortion.as_ref().map(|u| u.sample_share().clone()),
         };
         Ok((frame, warning))
     }

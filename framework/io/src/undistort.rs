@@ -11,8 +11,10 @@
 //! darkened ring fixed in the image, which raised the lens phantoms' ATE by up to 60 %).
 
 use capsule_slam_framework::camera::PinholeCamera;
-use capsule_slam_framework::image::{DepthMap, Mask, Rgb8};
+use capsule_slam_framework::frame::SampleShare;
+use capsule_slam_framework::image::{DepthMap, GrayF32, Mask, Rgb8};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// Largest spread of the four depths a bilinear depth sample blends, as a share of the nearest:
 /// 2.5 mm at 50 mm, a fold of the wall; a wall slanted at 80° to the ray spreads less over a
@@ -50,6 +52,8 @@ pub struct Undistortion {
     taps: Vec<Option<Tap>>,
     /// Out of view in the undistorted image.
     out_of_view: Mask,
+    /// Source pixels per undistorted pixel, at most 1 (0 out of view).
+    sample_share: SampleShare,
 }
 
 impl Undistortion {
@@ -85,7 +89,16 @@ impl Undistortion {
             (nearest_unseen - 0.5).min(0.5 * (w as f64).hypot(h as f64)).max(0.0)
         });
         let out_of_view = Mask::from_fn(w, h, |x, y| [taps[y * w + x].is_none() || !camera.in_fov(x as f64, y as f64)]);
-        Self { width: w, height: h, camera, taps, out_of_view }
+        let sample_share = Arc::new(GrayF32::from_fn_par(w, h, |x, y| {
+            [if out_of_view.at(x, y) { 0.0 } else { source_pixels_per_pixel(source, x as f64, y as f64).min(1.0) as f32 }]
+        }));
+        Self { width: w, height: h, camera, taps, out_of_view, sample_share }
+    }
+
+    /// Per undistorted pixel, the source pixels behind it, at most 1 (0 out of view): where the
+    /// map stretches the lens's outer ring, below 1 ([`SampleShare`]).
+    pub fn sample_share(&self) -> &SampleShare {
+        &self.sample_share
     }
 
     /// The camera of the undistorted frames.
@@ -183,6 +196,20 @@ impl Tap {
         let clamp = |v: usize, d: usize, n: usize| (v + d).saturating_sub(1).min(n - 1);
         (0..4).flat_map(move |r| (0..4).map(move |c| (clamp(x0, c, w), clamp(y0, r, h))))
     }
+}
+
+/// The area of the source image that undistorted pixel `(u, v)` of `source`'s pinhole camera
+/// covers, in source pixels: `|det ∂(u_src, v_src) / ∂(u, v)|` by central differences half a
+/// pixel either side (1 without a lens; for a radial lens `r_d = r (1 + k₁ r²)`,
+/// `(1 + k₁ r²)(1 + 3 k₁ r²)`).
+fn source_pixels_per_pixel(source: &PinholeCamera, u: f64, v: f64) -> f64 {
+    let at = |u: f64, v: f64| {
+        let (x, y) = ((u - source.cx) / source.fx, (v - source.cy) / source.fy);
+        let (xd, yd) = source.distortion.map_or((x, y), |l| l.distort(x, y));
+        (source.fx * xd + source.cx, source.fy * yd + source.cy)
+    };
+    let (left, right, up, down) = (at(u - 0.5, v), at(u + 0.5, v), at(u, v - 0.5), at(u, v + 0.5));
+    ((right.0 - left.0) * (down.1 - up.1) - (right.1 - left.1) * (down.0 - up.0)).abs()
 }
 
 /// The bilinear and nearest taps of source position `(us, vs)` (inside the image) in a `w × h`

@@ -177,3 +177,35 @@ fn no_colour_kernel_reads_beyond_the_round_field_of_view() {
         assert!(seen > 5000, "{lens:?}: {seen} pixels seen");
     }
 }
+
+#[test]
+fn the_sample_share_is_the_lens_area_ratio_clamped_to_one() {
+    // Without a lens every pixel is a source pixel.
+    let plain = Undistortion::new(&camera(None, None));
+    assert!(plain.sample_share().data().iter().all(|s| (*s - 1.0).abs() < 1e-6));
+    // A radial lens r_d = r (1 + k₁ r²) maps a ring of radius r and width dr to one of radius
+    // r_d and width r_d' dr: the area ratio is (r_d / r) · r_d' = (1 + k₁ r²)(1 + 3 k₁ r²).
+    let k1 = -0.2;
+    let c = camera(Some(LensModel::RadialTangential([k1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])), None);
+    let u = Undistortion::new(&c);
+    let share = u.sample_share();
+    let (mut checked, mut below_one) = (0, 0);
+    for y in 0..c.height {
+        for x in 0..c.width {
+            if u.out_of_view().at(x, y) {
+                assert_eq!(share.at(x, y), 0.0, "({x}, {y}) is out of view");
+                continue;
+            }
+            let r2 = ((x as f64 - c.cx) / c.fx).powi(2) + ((y as f64 - c.cy) / c.fy).powi(2);
+            let expected = ((1.0 + k1 * r2) * (1.0 + 3.0 * k1 * r2)).min(1.0);
+            assert!((f64::from(share.at(x, y)) - expected).abs() < 1e-3, "({x}, {y}): {} against {expected}", share.at(x, y));
+            checked += 1;
+            below_one += usize::from(expected < 0.9);
+        }
+    }
+    assert!(checked > c.width * c.height / 2 && below_one > 1000, "{checked} pixels, {below_one} stretched by more than 10 %");
+    // A pincushion lens squeezes the outer ring (more than one source pixel per pixel): 1.
+    let pincushion = Undistortion::new(&camera(Some(LensModel::RadialTangential([0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])), None));
+    let seen: Vec<f32> = pincushion.sample_share().data().iter().zip(pincushion.out_of_view().data()).filter(|(_, o)| !**o).map(|(s, _)| *s).collect();
+    assert!(!seen.is_empty() && seen.iter().all(|s| (*s - 1.0).abs() < 1e-6));
+}

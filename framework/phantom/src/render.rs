@@ -64,6 +64,7 @@ impl RenderedFrame {
             albedo: None,
             gt_t_world_cam: Some(self.t_world_cam),
             masks,
+            sample_share: None,
             derived: Default::default(),
         }
     }

@@ -127,6 +127,7 @@ impl Front<'_> {
             albedo: est.albedo,
             gt_t_world_cam: frame.gt_t_world_cam,
             masks: frame.masks,
+            sample_share: frame.sample_share,
             derived: Default::default(),
         })
     }

@@ -66,6 +66,7 @@ pub fn register_models(
         albedo: None,
         gt_t_world_cam: None,
         masks: Masks::new(),
+        sample_share: None,
         derived: Default::default(),
     };
     let mut tracker = IcpRgb::new(IcpRgbParams {

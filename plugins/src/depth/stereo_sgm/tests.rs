@@ -26,6 +26,7 @@ fn frame(ph: &Phantom, i: usize) -> CameraFrame {
         masks: Masks::new(),
         right_masks: Masks::new(),
         photometry: Photometry::default(),
+        sample_share: None,
     }
 }
 

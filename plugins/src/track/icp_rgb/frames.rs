@@ -31,8 +31,20 @@ pub struct Level {
     /// σ of the depth per pixel, metres (live frames whose depth stage gave one; references
     /// whose model or previous frame carries one).
     pub sigma: Option<DepthMap>,
+    /// Source pixels behind each pixel where the image was resampled (the frame's
+    /// [`RgbdFrame::sample_share`], a level's pixel the mean of its block of level-0 pixels);
+    /// `None`: 1 everywhere. The photometric term weighs each residual by it.
+    pub share: Option<GrayF32>,
     /// Correlation length of the depth error, pixels of this level.
     pub sigma_correlation_px: f64,
+}
+
+impl Level {
+    /// The share of pixel `(x, y)` ([`Level::share`]).
+    #[inline]
+    pub fn share_at(&self, x: usize, y: usize) -> f64 {
+        self.share.as_ref().map_or(1.0, |s| f64::from(s.at(x, y)))
+    }
 }
 
 /// Depth preparation parameters (shared with the fuser, so both can reuse the frame's memo).
@@ -88,7 +100,7 @@ pub fn pyramid(
         let (gx, gy) = gradients(&gray, &depth);
         let next_depth = half_depth(&depth, prep.edge_jump_m);
         let next_gray = half_gray(&gray, &depth);
-        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None, sigma_correlation_px: 0.0 });
+        out.push(Level { cam: c, depth, vertices, normals, gray, gx, gy, sigma: None, share: None, sigma_correlation_px: 0.0 });
         depth = next_depth;
         gray = next_gray;
     }
@@ -133,7 +145,38 @@ pub fn live(
     if let Some(sigma) = &frame.depth_sigma_m {
         set_sigma(&mut out, sigma, frame.depth_sigma_correlation_px);
     }
+    if let Some(share) = &frame.sample_share {
+        set_share(&mut out, share);
+    }
     out
+}
+
+/// Gives every level its pixels' share ([`Level::share`]): level l's pixel the mean of its
+/// 2^l × 2^l block of level-0 shares. A coarse pixel averages the sensor noise of the source
+/// pixels behind its block, `4^l · share` of them against a sensor pixel's `4^l`, so its noise
+/// variance relative to an unresampled pixel of its level is again `1 / share`.
+fn set_share(levels: &mut [Level], share0: &GrayF32) {
+    let (sw, sh) = share0.size();
+    for (l, level) in levels.iter_mut().enumerate() {
+        let (w, h) = level.depth.size();
+        let step = 1usize << l;
+        let mut out = GrayF32::new(w, h);
+        if sw > 0 && sh > 0 && w > 0 {
+            out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, v) in row.iter_mut().enumerate() {
+                    let (mut sum, mut n) = (0.0f32, 0usize);
+                    for yy in (y * step)..((y + 1) * step).min(sh) {
+                        for xx in (x * step)..((x + 1) * step).min(sw) {
+                            sum += share0.at(xx, yy);
+                            n += 1;
+                        }
+                    }
+                    *v = if n > 0 { sum / n as f32 } else { 0.0 };
+                }
+            });
+        }
+        level.share = Some(out);
+    }
 }
 
 /// Gives every level the σ of its pixels from the level-0 σ image. Level l samples every

@@ -298,7 +298,9 @@ fn photometric_row(
     let r = f64::from(ir) - predicted;
     let a = projected_gradient(&p, (gx, gy), cam.fx, cam.fy);
     let j = twist_row(&s, &inp.t_photo_ref.map_or(a, |t| t.rotation.inverse() * a));
-    let wt = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+    // A pixel resampled from fewer source pixels (an undistortion's stretched ring) shares its
+    // noise and interpolation error with its neighbours: counted once (`Level::share`).
+    let wt = live.share_at(x, y) * w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
     sys.add_row(&j, r, wt);
     sys.rgb_n += 1;
     sys.rgb_sse += r * r;

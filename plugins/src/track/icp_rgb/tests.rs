@@ -129,6 +129,57 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     assert!((1.0 / 1.44 - 0.01..=1.0 / 1.2 + 0.01).contains(&ratio), "a noisier frame weighs {ratio} as much");
 }
 
+#[test]
+fn a_resampled_pixel_weighs_its_photometric_residual_by_its_share_of_a_source_pixel() {
+    // Frame 61 as an undistortion would give it: its right half stretched to a quarter of a
+    // source pixel per pixel.
+    let ph = phantom(5, 300, 0.0);
+    let t = tracker(IcpRgbParams::default(), &ph);
+    let (a, b) = (rgbd(&ph, 60), rgbd(&ph, 61));
+    let (w, h) = b.depth_m.size();
+    let half = capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x >= w / 2 + 1 { 0.25 } else { 1.0 }]);
+    let prep = t.params.depth_prep();
+    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None, 0);
+    let reference = super::frames::reference(None, previous.first(), &ph.camera, 3, &prep).unwrap();
+    let plain = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
+    let mut shared = b.clone();
+    shared.sample_share = Some(std::sync::Arc::new(half.clone()));
+    let resampled = super::frames::live(&shared, &ph.camera, 3, &prep, None, 0);
+    // Each level's pixel holds the mean share of its block of level-0 pixels.
+    assert!(plain.iter().all(|l| l.share.is_none()));
+    for (l, level) in resampled.iter().enumerate() {
+        let step = 1usize << l;
+        let (lw, lh) = level.depth.size();
+        for (x, y) in [(0, 0), (lw / 2, lh / 2), (lw / 2 - 1, 3), (lw - 1, lh - 1)] {
+            let block: Vec<f32> =
+                (y * step..(y + 1) * step).flat_map(|yy| (x * step..(x + 1) * step).map(move |xx| (xx, yy))).map(|(xx, yy)| half.at(xx, yy)).collect();
+            let mean = block.iter().sum::<f32>() / block.len() as f32;
+            assert!((level.share_at(x, y) - f64::from(mean)).abs() < 1e-6, "level {l} ({x}, {y}): {} against {mean}", level.share_at(x, y));
+        }
+    }
+    // At level 0 the photometric rows of the right half count a quarter; the ICP rows all count.
+    let gap = exp_se3(&Vector6::new(3e-4, -2e-4, 5e-4, 0.002, 0.0, -0.001));
+    let system = |live: &[super::frames::Level], w_rgb: f64| {
+        super::gn::accumulate(&level0(live, &reference, None), &gap, &super::gn::Weights { w_rgb, rgb_min_gradient: 0.002, ..photometric_weights() })
+    };
+    let (icp_only, icp_only_resampled) = (system(&plain, 0.0), system(&resampled, 0.0));
+    assert_eq!(icp_only.a.full(), icp_only_resampled.a.full(), "the share does not touch the point-to-plane rows");
+    let (full, full_resampled) = (system(&plain, 1.0), system(&resampled, 1.0));
+    assert_eq!((full.rgb_n, full.icp_n), (full_resampled.rgb_n, full_resampled.icp_n));
+    let (photo, photo_resampled) = (full.a.full() - icp_only.a.full(), full_resampled.a.full() - icp_only.a.full());
+    // The left half alone (share 1 there, 0 on the right) and the right half: their sum at
+    // weights 1 and 1/4 is the resampled frame's photometric information.
+    let only = |left: f32, right: f32| {
+        let mut f = b.clone();
+        f.sample_share = Some(std::sync::Arc::new(capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x >= w / 2 + 1 { right } else { left }])));
+        system(&super::frames::live(&f, &ph.camera, 3, &prep, None, 0), 1.0).a.full() - icp_only.a.full()
+    };
+    let (left, right) = (only(1.0, 0.0), only(0.0, 1.0));
+    assert!((left + right - photo).norm() < 1e-9 * photo.norm(), "the halves add up to the whole");
+    assert!(left.norm() > 0.2 * photo.norm() && right.norm() > 0.2 * photo.norm(), "both halves are textured");
+    assert!((left + 0.25 * right - photo_resampled).norm() < 1e-9 * photo.norm(), "the stretched half counts a quarter");
+}
+
 /// Tracks `b` from `a` (exact), returns the result and the warnings.
 fn track_pair(
     ph: &capsule_slam_phantom::Phantom,

@@ -156,6 +156,9 @@ pub struct LiveSample {
     pub depth_m: f64,
     /// The live depth's σ there, metres (0 when the frame carries none).
     pub sigma_m: f64,
+    /// The live pixel's share of a source pixel there ([`Level::share`]; 1 where the image was
+    /// not resampled).
+    pub share: f64,
 }
 
 /// Samples the live level at the projection of `x_world` seen from `t_world_cam`.
@@ -186,6 +189,7 @@ pub fn look(level: &Level, t_world_cam: &Iso3, x_world: &Point3<f64>) -> Option<
         gray,
         depth_m: f64::from(level.depth.at(ui, vi)),
         sigma_m: level.sigma.as_ref().map_or(0.0, |s| f64::from(s.at(ui, vi))),
+        share: level.share_at(ui, vi),
     })
 }
 

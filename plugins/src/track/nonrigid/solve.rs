@@ -188,7 +188,7 @@ impl Problem {
             let a = image_gradient_cam(&live.q_cam_m, (gx, gy), level.cam.fx, level.cam.fy);
             let m = photo_world_gradient(t.rotation.to_rotation_matrix().matrix(), &a);
             let r = i - reference;
-            let weight = w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+            let weight = live.share * w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
             sink(&Residual { a: m, camera: photo_camera_row(&m, &warped), r, w: weight });
             return [icp_r2, Some(r * r)];
         }

@@ -613,3 +613,38 @@ fn a_problem_built_beside_the_rigid_start_solves_as_one_built_after_it() {
         assert_eq!(outcome.analyses, usize::from(!release), "release {release}");
     }
 }
+
+#[test]
+fn a_resampled_live_pixel_weighs_the_photometric_row_by_its_share_only() {
+    let (t, points, live) = setup(CameraMode::Joint, 0.0003);
+    let w = t.params.weights();
+    let (problem, _, _) = t.problem(&points).unwrap();
+    let t_wc = Iso3::identity();
+    // The live level as an undistortion would give it: a third of a source pixel per pixel.
+    let mut stretched = live.clone();
+    let (lw, lh) = live.depth.size();
+    stretched.share = Some(capsule_slam_framework::GrayF32::from_fn(lw, lh, |_, _| [1.0 / 3.0]));
+    let rows = |level: &Level| {
+        let mut out: Vec<(f64, f64)> = Vec::new();
+        for (i, binding) in &problem.points {
+            problem.point_terms(level, &t_wc, &w, &points[*i], binding, &mut |q: &super::system::Residual| out.push((q.r, q.w)));
+        }
+        out
+    };
+    let (plain, shared) = (rows(&live), rows(&stretched));
+    assert_eq!(plain.len(), shared.len());
+    // Point-to-plane rows carry a residual in metres (below a millimetre here), photometric ones
+    // an intensity difference; each point gives its point-to-plane row first.
+    let (mut photometric, mut geometric) = (0, 0);
+    for ((r, wp), (r2, ws)) in plain.iter().zip(&shared) {
+        assert_eq!(r, r2);
+        if (ws - wp).abs() < 1e-15 * wp.abs() {
+            geometric += 1;
+        } else {
+            assert!((ws - wp / 3.0).abs() < 1e-7 * wp.abs(), "a row weighs {ws} against {wp} (the share is an f32)");
+            photometric += 1;
+        }
+    }
+    assert!(photometric > 100 && geometric > 100, "{photometric} photometric and {geometric} point-to-plane rows");
+    assert!(live.share.is_none() && (0..lw).all(|x| live.share_at(x, lh / 2) == 1.0));
+}
