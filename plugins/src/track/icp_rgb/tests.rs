@@ -137,7 +137,7 @@ fn a_resampled_pixel_weighs_its_photometric_residual_by_its_share_of_a_source_pi
     let t = tracker(IcpRgbParams::default(), &ph);
     let (a, b) = (rgbd(&ph, 60), rgbd(&ph, 61));
     let (w, h) = b.depth_m.size();
-    let half = capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x >= w / 2 + 1 { 0.25 } else { 1.0 }]);
+    let half = capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x > w / 2 { 0.25 } else { 1.0 }]);
     let prep = t.params.depth_prep();
     let previous = super::frames::live(&a, &ph.camera, 3, &prep, None, 0);
     let reference = super::frames::reference(None, previous.first(), &ph.camera, 3, &prep).unwrap();
@@ -171,7 +171,7 @@ fn a_resampled_pixel_weighs_its_photometric_residual_by_its_share_of_a_source_pi
     // weights 1 and 1/4 is the resampled frame's photometric information.
     let only = |left: f32, right: f32| {
         let mut f = b.clone();
-        f.sample_share = Some(std::sync::Arc::new(capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x >= w / 2 + 1 { right } else { left }])));
+        f.sample_share = Some(std::sync::Arc::new(capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x > w / 2 { right } else { left }])));
         system(&super::frames::live(&f, &ph.camera, 3, &prep, None, 0), 1.0).a.full() - icp_only.a.full()
     };
     let (left, right) = (only(1.0, 0.0), only(0.0, 1.0));
