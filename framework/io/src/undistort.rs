@@ -8,7 +8,9 @@
 //! lands outside the source image or its round field of view, or beyond the lens's fold (where
 //! the model maps two rays to one pixel), is out of view, and so is one whose colour kernel
 //! reaches a source pixel beyond the round field of view (black in a capsule's frames: a
-//! darkened ring fixed in the image, which raised the lens phantoms' ATE by up to 60 %).
+//! darkened ring fixed in the image, which raised the lens phantoms' ATE by up to 60 %). Each
+//! pixel also gets the source pixels behind it ([`Undistortion::sample_share`]), which the
+//! trackers weigh its photometric residual by.
 
 use capsule_slam_framework::camera::PinholeCamera;
 use capsule_slam_framework::frame::SampleShare;
