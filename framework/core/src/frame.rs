@@ -180,7 +180,63 @@ pub struct CameraFrame {
 /// spread over `1 / share` neighbouring pixels; a tracker that weighs each pixel's photometric
 /// residual by its share counts them once (the counterpart of the depth error's correlated
 /// blocks, [`RgbdFrame::depth_sigma_correlation_px`]). Shared by every frame of a sequence.
-pub type SampleShare = Arc<GrayF32>;
+pub type SampleShare = Arc<ShareMap>;
+
+/// A [`SampleShare`]'s per-pixel map (it dereferences to it) and its block means, derived once
+/// per sequence rather than once per frame.
+#[derive(Debug)]
+pub struct ShareMap {
+    per_pixel: GrayF32,
+    /// `block_means[l]`: each pixel the mean of a 2^l × 2^l block; made on first use.
+    block_means: Mutex<Vec<Arc<GrayF32>>>,
+}
+
+impl ShareMap {
+    /// The share of every pixel.
+    pub fn new(per_pixel: GrayF32) -> Self {
+        Self { per_pixel, block_means: Mutex::new(Vec::new()) }
+    }
+
+    /// The `width × height` image whose pixel `(x, y)` is the mean share of the 2^l × 2^l
+    /// block at `(x·2^l, y·2^l)` (0 beyond the map); made once per `l`.
+    pub fn block_mean(&self, l: usize, (width, height): (usize, usize)) -> Arc<GrayF32> {
+        let mut made = self.block_means.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(m) = made.get(l).filter(|m| m.size() == (width, height)) {
+            return m.clone();
+        }
+        let (sw, sh, step) = (self.per_pixel.width(), self.per_pixel.height(), 1usize << l);
+        let mean = Arc::new(GrayF32::from_fn(width, height, |x, y| {
+            let (mut sum, mut n) = (0.0f32, 0usize);
+            for yy in (y * step)..((y + 1) * step).min(sh) {
+                for xx in (x * step)..((x + 1) * step).min(sw) {
+                    sum += self.per_pixel.at(xx, yy);
+                    n += 1;
+                }
+            }
+            [if n > 0 { sum / n as f32 } else { 0.0 }]
+        }));
+        if made.len() <= l {
+            made.resize(l + 1, Arc::new(GrayF32::new(0, 0)));
+        }
+        made[l] = mean.clone();
+        mean
+    }
+}
+
+impl std::ops::Deref for ShareMap {
+    type Target = GrayF32;
+
+    fn deref(&self) -> &GrayF32 {
+        &self.per_pixel
+    }
+}
+
+impl PartialEq for ShareMap {
+    /// Two maps are equal when their shares are (the block means derive from them).
+    fn eq(&self, other: &Self) -> bool {
+        self.per_pixel == other.per_pixel
+    }
+}
 
 impl CameraFrame {
     /// A mono frame with no depth, pose, masks or photometric corrections.
@@ -324,6 +380,16 @@ mod tests {
         let u = m.union().unwrap();
         assert_eq!(u.data(), &[true, false, false, true]);
         assert!(m.ignored(1, 1) && !m.ignored(1, 0));
+    }
+
+    #[test]
+    fn a_share_maps_block_means_are_made_once() {
+        let share = ShareMap::new(GrayF32::from_fn(5, 4, |x, y| [(x + 10 * y) as f32]));
+        let half = share.block_mean(1, (3, 2));
+        // (0, 0) averages 0, 1, 10, 11; (2, 1) the last column's two pixels 24 and 34.
+        assert_eq!((half.at(0, 0), half.at(2, 1)), (5.5, 29.0));
+        assert!(Arc::ptr_eq(&half, &share.block_mean(1, (3, 2))), "made once");
+        assert_eq!(share.block_mean(0, (5, 4)).data(), share.data());
     }
 
     #[test]

@@ -13,7 +13,7 @@
 //! trackers weigh its photometric residual by.
 
 use capsule_slam_framework::camera::PinholeCamera;
-use capsule_slam_framework::frame::SampleShare;
+use capsule_slam_framework::frame::{SampleShare, ShareMap};
 use capsule_slam_framework::image::{DepthMap, GrayF32, Mask, Rgb8};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -65,13 +65,10 @@ impl Undistortion {
         let lens = source.distortion;
         let taps: Vec<Option<Tap>> = (0..w * h)
             .map(|k| {
-                let (u, v) = ((k % w) as f64, (k / w) as f64);
-                let (x, y) = ((u - source.cx) / source.fx, (v - source.cy) / source.fy);
-                let (xd, yd) = lens.map_or((x, y), |l| l.distort(x, y));
+                let ((x, y), (xd, yd), (us, vs)) = through_lens(source, (k % w) as f64, (k / w) as f64);
                 // Beyond the fold a far ray lands back inside: only a pixel the inverse maps
                 // back to its own ray is seen.
                 let unfolded = lens.is_none_or(|l| l.undistort(xd, yd).is_some_and(|(xu, yu)| (xu - x).hypot(yu - y) < 1e-6 * (1.0 + x.hypot(y))));
-                let (us, vs) = (source.fx * xd + source.cx, source.fy * yd + source.cy);
                 // Every source pixel the colour kernel reads must be seen: one beyond the round
                 // field of view is black, and a kernel reaching it darkens the rim by a fixed
                 // pattern that the photometric term then tracks (docs/results/camera-models.md).
@@ -91,9 +88,9 @@ impl Undistortion {
             (nearest_unseen - 0.5).min(0.5 * (w as f64).hypot(h as f64)).max(0.0)
         });
         let out_of_view = Mask::from_fn(w, h, |x, y| [taps[y * w + x].is_none() || !camera.in_fov(x as f64, y as f64)]);
-        let sample_share = Arc::new(GrayF32::from_fn_par(w, h, |x, y| {
+        let sample_share = Arc::new(ShareMap::new(GrayF32::from_fn_par(w, h, |x, y| {
             [if out_of_view.at(x, y) { 0.0 } else { source_pixels_per_pixel(source, x as f64, y as f64).min(1.0) as f32 }]
-        }));
+        })));
         Self { width: w, height: h, camera, taps, out_of_view, sample_share }
     }
 
@@ -200,16 +197,20 @@ impl Tap {
     }
 }
 
+/// Undistorted pixel `(u, v)` of `source`'s pinhole camera through the lens: its ray
+/// (normalised coordinates), where the lens bends it, and the source pixel it lands on.
+fn through_lens(source: &PinholeCamera, u: f64, v: f64) -> ((f64, f64), (f64, f64), (f64, f64)) {
+    let (x, y) = ((u - source.cx) / source.fx, (v - source.cy) / source.fy);
+    let (xd, yd) = source.distortion.map_or((x, y), |l| l.distort(x, y));
+    ((x, y), (xd, yd), (source.fx * xd + source.cx, source.fy * yd + source.cy))
+}
+
 /// The area of the source image that undistorted pixel `(u, v)` of `source`'s pinhole camera
 /// covers, in source pixels: `|det ∂(u_src, v_src) / ∂(u, v)|` by central differences half a
 /// pixel either side (1 without a lens; for a radial lens `r_d = r (1 + k₁ r²)`,
 /// `(1 + k₁ r²)(1 + 3 k₁ r²)`).
 fn source_pixels_per_pixel(source: &PinholeCamera, u: f64, v: f64) -> f64 {
-    let at = |u: f64, v: f64| {
-        let (x, y) = ((u - source.cx) / source.fx, (v - source.cy) / source.fy);
-        let (xd, yd) = source.distortion.map_or((x, y), |l| l.distort(x, y));
-        (source.fx * xd + source.cx, source.fy * yd + source.cy)
-    };
+    let at = |u: f64, v: f64| through_lens(source, u, v).2;
     let (left, right, up, down) = (at(u - 0.5, v), at(u + 0.5, v), at(u, v - 0.5), at(u, v + 0.5));
     ((right.0 - left.0) * (down.1 - up.1) - (right.1 - left.1) * (down.0 - up.0)).abs()
 }

@@ -2,7 +2,7 @@
 //! prediction, filled in with the previous live frame where the model has nothing).
 
 use capsule_slam_framework::camera::PinholeCamera;
-use capsule_slam_framework::frame::MASK_SPECULAR;
+use capsule_slam_framework::frame::{MASK_SPECULAR, ShareMap};
 use capsule_slam_framework::image::gray_from_rgb;
 use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
 
@@ -10,6 +10,7 @@ use crate::common::maps::{GeometryParams, NormalMap, VertexMap, geometry, normal
 use crate::common::masks::dilate;
 use crate::common::pyramid::{half_depth, half_gray};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// One pyramid level.
 #[derive(Clone)]
@@ -34,7 +35,7 @@ pub struct Level {
     /// Source pixels behind each pixel where the image was resampled (the frame's
     /// [`RgbdFrame::sample_share`], a level's pixel the mean of its block of level-0 pixels);
     /// `None`: 1 everywhere. The photometric term weighs each residual by it.
-    pub share: Option<GrayF32>,
+    pub share: Option<Arc<GrayF32>>,
     /// Correlation length of the depth error, pixels of this level.
     pub sigma_correlation_px: f64,
 }
@@ -151,47 +152,14 @@ pub fn live(
     out
 }
 
-/// One image per level from a level-0 image `src`: level l's pixel `(x, y)` is
-/// `pixel(src, 2^l, x, y)` (all zero where `src` is empty).
-fn per_level(levels: &[Level], src: &GrayF32, pixel: impl Fn(&GrayF32, usize, usize, usize) -> f32 + Sync) -> Vec<GrayF32> {
-    let (sw, sh) = src.size();
-    let pixel = &pixel;
-    levels
-        .iter()
-        .enumerate()
-        .map(|(l, level)| {
-            let (w, h) = level.depth.size();
-            let mut out = GrayF32::new(w, h);
-            if sw > 0 && sh > 0 && w > 0 {
-                out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                    for (x, v) in row.iter_mut().enumerate() {
-                        *v = pixel(src, 1 << l, x, y);
-                    }
-                });
-            }
-            out
-        })
-        .collect()
-}
-
 /// Gives every level its pixels' share ([`Level::share`]): level l's pixel the mean of its
-/// 2^l × 2^l block of level-0 shares. A coarse pixel averages the sensor noise of the source
-/// pixels behind its block, `4^l · share` of them against a sensor pixel's `4^l`, so its noise
-/// variance relative to an unresampled pixel of its level is again `1 / share`.
-fn set_share(levels: &mut [Level], share0: &GrayF32) {
-    let (sw, sh) = share0.size();
-    let maps = per_level(levels, share0, |s, step, x, y| {
-        let (mut sum, mut n) = (0.0f32, 0usize);
-        for yy in (y * step)..((y + 1) * step).min(sh) {
-            for xx in (x * step)..((x + 1) * step).min(sw) {
-                sum += s.at(xx, yy);
-                n += 1;
-            }
-        }
-        if n > 0 { sum / n as f32 } else { 0.0 }
-    });
-    for (level, map) in levels.iter_mut().zip(maps) {
-        level.share = Some(map);
+/// 2^l × 2^l block of level-0 shares ([`ShareMap::block_mean`], made once per sequence). A
+/// coarse pixel averages the sensor noise of the source pixels behind its block, `4^l · share`
+/// of them against a sensor pixel's `4^l`, so its noise variance relative to an unresampled
+/// pixel of its level is again `1 / share`.
+fn set_share(levels: &mut [Level], share: &ShareMap) {
+    for (l, level) in levels.iter_mut().enumerate() {
+        level.share = Some(share.block_mean(l, level.depth.size()));
     }
 }
 
@@ -200,10 +168,20 @@ fn set_share(levels: &mut [Level], share0: &GrayF32) {
 /// smooth error) is hardly better than one pixel.
 fn set_sigma(levels: &mut [Level], sigma: &DepthMap, correlation_px: f64) {
     let (sw, sh) = sigma.size();
-    let maps = per_level(levels, sigma, |s, step, x, y| s.at((x * step).min(sw - 1), (y * step).min(sh - 1)));
-    for (l, (level, map)) in levels.iter_mut().zip(maps).enumerate() {
-        level.sigma = Some(map);
-        level.sigma_correlation_px = correlation_px / (1usize << l) as f64;
+    for (l, level) in levels.iter_mut().enumerate() {
+        let (w, h) = level.depth.size();
+        let step = 1usize << l;
+        let mut out = DepthMap::new(w, h);
+        if sw > 0 && sh > 0 && w > 0 {
+            out.data_mut().par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                let src = &sigma.data()[(y * step).min(sh - 1) * sw..][..sw];
+                for (x, v) in row.iter_mut().enumerate() {
+                    *v = src[(x * step).min(sw - 1)];
+                }
+            });
+        }
+        level.sigma = Some(out);
+        level.sigma_correlation_px = correlation_px / step as f64;
     }
 }
 

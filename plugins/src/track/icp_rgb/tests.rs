@@ -143,7 +143,7 @@ fn a_resampled_pixel_weighs_its_photometric_residual_by_its_share_of_a_source_pi
     let reference = super::frames::reference(None, previous.first(), &ph.camera, 3, &prep).unwrap();
     let plain = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
     let mut shared = b.clone();
-    shared.sample_share = Some(std::sync::Arc::new(half.clone()));
+    shared.sample_share = Some(std::sync::Arc::new(capsule_slam_framework::frame::ShareMap::new(half.clone())));
     let resampled = super::frames::live(&shared, &ph.camera, 3, &prep, None, 0);
     // Each level's pixel holds the mean share of its block of level-0 pixels.
     assert!(plain.iter().all(|l| l.share.is_none()));
@@ -171,7 +171,9 @@ fn a_resampled_pixel_weighs_its_photometric_residual_by_its_share_of_a_source_pi
     // weights 1 and 1/4 is the resampled frame's photometric information.
     let only = |left: f32, right: f32| {
         let mut f = b.clone();
-        f.sample_share = Some(std::sync::Arc::new(capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| [if x > w / 2 { right } else { left }])));
+        f.sample_share = Some(std::sync::Arc::new(capsule_slam_framework::frame::ShareMap::new(capsule_slam_framework::GrayF32::from_fn(w, h, |x, _| {
+            [if x > w / 2 { right } else { left }]
+        }))));
         system(&super::frames::live(&f, &ph.camera, 3, &prep, None, 0), 1.0).a.full() - icp_only.a.full()
     };
     let (left, right) = (only(1.0, 0.0), only(0.0, 1.0));

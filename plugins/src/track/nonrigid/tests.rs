@@ -623,7 +623,7 @@ fn a_resampled_live_pixel_weighs_the_photometric_row_by_its_share_only() {
     // The live level as an undistortion would give it: a third of a source pixel per pixel.
     let mut stretched = live.clone();
     let (lw, lh) = live.depth.size();
-    stretched.share = Some(capsule_slam_framework::GrayF32::from_fn(lw, lh, |_, _| [1.0 / 3.0]));
+    stretched.share = Some(std::sync::Arc::new(capsule_slam_framework::GrayF32::from_fn(lw, lh, |_, _| [1.0 / 3.0])));
     let rows = |level: &Level| {
         let mut out: Vec<(f64, f64)> = Vec::new();
         for (i, binding) in &problem.points {
