@@ -1,5 +1,6 @@
 //! `surfel-cpu` and `surfel-gpu`: fusing one frame into a map of the 30 frames before it, and
-//! predicting the active model, at 250×250 and 320×320. Without a GPU adapter the
+//! predicting the active model, at 250×250 and 320×320; `surfel-cpu`'s splat also on a map of
+//! the whole path, most of it out of the view (`predict-whole-path`). Without a GPU adapter the
 //! `surfel-gpu` group is skipped with a message (`CAPSULE_SLAM_REQUIRE_GPU=1`: a failure).
 
 use capsule_slam_benches::{fused_map_of, phantom, rgbd, rig};
@@ -51,6 +52,14 @@ fn fuse_with(c: &mut Criterion, name: &str, gpu: &capsule_slam_gpu::GpuHandle) {
                     b.iter(|| predict(&surfels, |s| s.confidence >= params.stable_confidence, &p.camera, pose, &depths))
                 });
             }
+            // A map of the whole path (every 10th of 300 frames) seen from frame 100: as on a
+            // revisit, most of the surfels lie out of the view, and the splat culls them.
+            let whole =
+                fused_map_of(name, &p, (0..300).step_by(10), gpu).and_then(|f| f.snapshot().map_err(|e| e.to_string())).unwrap_or_else(|e| panic!("{e}"));
+            let depths = SplatDepths::of(&params);
+            g.bench_with_input(BenchmarkId::new("predict-whole-path", label), &pose, |b, pose| {
+                b.iter(|| predict(&whole.surfels, |_| true, &p.camera, pose, &depths))
+            });
         }
     }
     g.finish();

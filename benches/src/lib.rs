@@ -51,7 +51,7 @@ pub fn fused_map(p: &Phantom, frames: std::ops::Range<usize>) -> Box<dyn capsule
 pub fn fused_map_of(
     name: &str,
     p: &Phantom,
-    frames: std::ops::Range<usize>,
+    frames: impl IntoIterator<Item = usize>,
     gpu: &capsule_slam_gpu::GpuHandle,
 ) -> Result<Box<dyn capsule_slam_framework::Fuser>, String> {
     link();
