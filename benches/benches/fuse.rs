@@ -53,7 +53,7 @@ fn fuse_with(c: &mut Criterion, name: &str, gpu: &capsule_slam_gpu::GpuHandle) {
                 });
             }
             // A map of the whole path (every 10th of 300 frames) seen from frame 100: as on a
-            // revisit, most of the surfels lie out of the view, and the splat culls them.
+            // revisit, most of the surfels lie out of the view (`docs/results/speed.md`).
             let whole =
                 fused_map_of(name, &p, (0..300).step_by(10), gpu).and_then(|f| f.snapshot().map_err(|e| e.to_string())).unwrap_or_else(|e| panic!("{e}"));
             let depths = SplatDepths::of(&params);
