@@ -188,7 +188,7 @@ pub type SampleShare = Arc<ShareMap>;
 pub struct ShareMap {
     per_pixel: GrayF32,
     /// `block_means[l]`: each pixel the mean of a 2^l × 2^l block; made on first use.
-    block_means: Mutex<Vec<Arc<GrayF32>>>,
+    block_means: Mutex<Vec<Option<Arc<GrayF32>>>>,
 }
 
 impl ShareMap {
@@ -201,7 +201,7 @@ impl ShareMap {
     /// block at `(x·2^l, y·2^l)` (0 beyond the map); made once per `l`.
     pub fn block_mean(&self, l: usize, (width, height): (usize, usize)) -> Arc<GrayF32> {
         let mut made = self.block_means.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some(m) = made.get(l).filter(|m| m.size() == (width, height)) {
+        if let Some(m) = made.get(l).and_then(Option::as_ref).filter(|m| m.size() == (width, height)) {
             return m.clone();
         }
         let (sw, sh, step) = (self.per_pixel.width(), self.per_pixel.height(), 1usize << l);
@@ -216,9 +216,9 @@ impl ShareMap {
             [if n > 0 { sum / n as f32 } else { 0.0 }]
         }));
         if made.len() <= l {
-            made.resize(l + 1, Arc::new(GrayF32::new(0, 0)));
+            made.resize(l + 1, None);
         }
-        made[l] = mean.clone();
+        made[l] = Some(mean.clone());
         mean
     }
 }
