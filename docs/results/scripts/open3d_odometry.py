@@ -9,7 +9,7 @@ Reads a sequence folder as `capsule-slam run` does (`camera.toml`, `rgb.txt`, `d
 whose odometry fails keeps the previous frame's motion (constant velocity) and is counted as lost.
 Evaluate it like any estimate:
 
-    python3 open3d_odometry.py SEQ OUT.txt [--depth-diff-max M]
+    python3 open3d_odometry.py SEQ OUT.txt [--depth-diff-max M] [--depth-max M]
     capsule-slam eval --gt SEQ/groundtruth.txt --est OUT.txt
 
 `--depth-diff-max` is Open3D's correspondence gate on depth (its default 0.03 m is room scale).
@@ -57,6 +57,7 @@ def main():
     ap.add_argument("seq")
     ap.add_argument("out")
     ap.add_argument("--depth-diff-max", type=float, default=0.03)
+    ap.add_argument("--depth-max", type=float, default=1.0, help="depths beyond this (m) are cut; 1 m suits the phantom, 4 m a room")
     ap.add_argument("--method", choices=["legacy-hybrid", "point-to-plane", "hybrid", "intensity"], default="legacy-hybrid")
     a = ap.parse_args()
     with open(os.path.join(a.seq, "camera.toml"), "rb") as f:
@@ -73,10 +74,10 @@ def legacy(a, cam, paths):
     intr = o3d.camera.PinholeCameraIntrinsic(cam["width"], cam["height"], cam["fx"], cam["fy"], cam["cx"], cam["cy"])
     option = o3d.pipelines.odometry.OdometryOption()
     option.depth_diff_max = a.depth_diff_max
-    option.depth_min, option.depth_max = 0.0, 1.0
+    option.depth_min, option.depth_max = 0.0, a.depth_max
     term = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
     frames = [(t, o3d.geometry.RGBDImage.create_from_color_and_depth(
-        o3d.io.read_image(c), o3d.io.read_image(d), depth_scale=cam["depth_scale"], depth_trunc=1.0,
+        o3d.io.read_image(c), o3d.io.read_image(d), depth_scale=cam["depth_scale"], depth_trunc=a.depth_max,
         convert_rgb_to_intensity=True)) for t, c, d in paths]
 
     def register(cur, prev, guess):
@@ -99,7 +100,7 @@ def tensor(a, cam, paths):
 
     def register(cur, prev, guess):
         try:
-            res = T.rgbd_odometry_multi_scale(cur, prev, k, o3c.Tensor(guess), cam["depth_scale"], 1.0, crit, method, params)
+            res = T.rgbd_odometry_multi_scale(cur, prev, k, o3c.Tensor(guess), cam["depth_scale"], a.depth_max, crit, method, params)
         except RuntimeError:
             return None
         m = res.transformation.numpy()

@@ -49,7 +49,7 @@ impl Plugin for Sensor {
         }
         let default_noise = noise.is_none().then(|| {
             format!(
-                "sensor: camera.toml declares no depth_noise: every depth pixel is taken to have σ = {} mm, uncorrelated (plugins.sensor.default_sigma_m); declare the sensor's model (docs/usage.md) if it is noisier",
+                "camera.toml declares no depth_noise: every depth pixel is taken to have σ = {} mm, uncorrelated (plugins.sensor.default_sigma_m); declare the sensor's model (docs/usage.md) if it is noisier",
                 params.default_sigma_m * 1e3
             )
         });

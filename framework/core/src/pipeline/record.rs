@@ -101,9 +101,15 @@ impl FrameRecord {
         }
     }
 
-    /// Every warning of the frame, prefixed by its plugin's name.
+    /// Every warning of the frame, prefixed by its plugin's name (once: a plugin that already
+    /// names itself, as a library's plugin may, is not named twice).
     pub fn warnings(&self) -> impl Iterator<Item = String> + '_ {
-        self.reports.iter().flat_map(|(name, r)| r.warnings.iter().map(move |w| format!("{name}: {w}")))
+        self.reports.iter().flat_map(|(name, r)| {
+            r.warnings.iter().map(move |w| match w.strip_prefix(name.as_str()).and_then(|rest| rest.strip_prefix(": ")) {
+                Some(_) => w.clone(),
+                None => format!("{name}: {w}"),
+            })
+        })
     }
 }
 
@@ -120,4 +126,18 @@ pub(super) fn report<'r>(rec: &'r mut FrameRecord, name: &str) -> &'r mut StageR
 /// A stage's error at `frame`.
 pub(super) fn stage_err(frame: usize, stage: &str, source: StageError) -> PipelineError {
     PipelineError::Stage { frame, stage: stage.to_owned(), source }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_warning_names_its_plugin_once() {
+        let mut rec = FrameRecord::new(0, 0.0);
+        report(&mut rec, "sensor").warnings.extend(["no depth within [0.001, 0.3] m".to_string(), "sensor: already named".to_string()]);
+        report(&mut rec, "vignetting").warnings.push("sensor: a name that is not its own".to_string());
+        let all: Vec<String> = rec.warnings().collect();
+        assert_eq!(all, ["sensor: no depth within [0.001, 0.3] m", "sensor: already named", "vignetting: sensor: a name that is not its own"]);
+    }
 }

@@ -290,7 +290,7 @@ impl Preprocessor for Vignetting {
         if frame.photometry.divided.is_some() {
             if !self.warned_twice {
                 self.warned_twice = true;
-                ctx.warn("vignetting: the frame's fall-off is already divided (a second vignetting stage?): left unchanged");
+                ctx.warn("the frame's fall-off is already divided (a second vignetting stage?): left unchanged");
             }
             return Ok(());
         }
