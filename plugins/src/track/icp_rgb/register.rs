@@ -112,7 +112,8 @@ impl IcpRgb {
         let w = self.weights(&noise);
         // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
         let relighter = self.light.as_ref().map(Relighter::new);
-        let albedo: Option<Vec<GrayF32>> = relighter.as_ref().map(|r| live.iter().map(|lv| r.live_albedo(lv)).collect());
+        let albedo: Option<Vec<GrayF32>> =
+            relighter.as_ref().map(|r| live.iter().enumerate().map(|(level, lv)| r.live_albedo_every(lv, self.stride(level))).collect());
         let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level);
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
@@ -253,8 +254,13 @@ impl IcpRgb {
             photo: &photo[level],
             t_photo_ref,
             light: relighter.zip(albedo).map(|(r, a)| (r, &a[level])),
-            stride: if level == 0 { self.params.stride_l0 as usize } else { 1 },
+            stride: self.stride(level),
         }
+    }
+
+    /// Every how many pixels a level's systems read the live image (`stride_l0` at level 0).
+    fn stride(&self, level: usize) -> usize {
+        if level == 0 { self.params.stride_l0 as usize } else { 1 }
     }
 
     /// Runs the levels from `from` down to `to`, each from its first iteration, except that with

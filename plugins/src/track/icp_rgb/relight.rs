@@ -182,8 +182,18 @@ impl<'a> Relighter<'a> {
     /// response` (the albedo up to the light's gain; 0 where the pixel has no surface or no
     /// light): the pose-free half of the relighting, once per frame.
     pub fn live_albedo(&self, live: &Level) -> GrayF32 {
+        self.live_albedo_every(live, 1)
+    }
+
+    /// [`Relighter::live_albedo`] at every `stride`-th pixel of every `stride`-th row, the ones
+    /// a Gauss-Newton system with that stride reads (`gn::Inputs::stride`); 0 elsewhere.
+    pub fn live_albedo_every(&self, live: &Level, stride: usize) -> GrayF32 {
         let (w, h) = live.depth.size();
+        let stride = stride.max(1);
         GrayF32::from_fn_par(w, h, |x, y| {
+            if x % stride != 0 || y % stride != 0 {
+                return [0.0];
+            }
             let (Some(v), Some(n)) = (vertex(&live.vertices, x, y), normal(&live.normals, x, y)) else { return [0.0] };
             let r = self.response(&live.cam, (x as f64, y as f64), &Point3::from(v.cast::<f64>()), &n.cast::<f64>());
             [if r > 1e-9 { (self.decode(f64::from(live.gray.at(x, y))) / r) as f32 } else { 0.0 }]

@@ -315,6 +315,37 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
 }
 
 #[test]
+fn the_albedo_made_at_the_systems_stride_relights_the_same_system() {
+    // Level 0 reads every `stride_l0`-th pixel, so its live albedo is made there only: the
+    // system is the same to the bit, and the pixels off the grid have none.
+    let ph = phantom(1, 300, 0.0);
+    let t = tracker(IcpRgbParams::default(), &ph);
+    let (a, b) = (rgbd(&ph, 100), rgbd(&ph, 104));
+    let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
+    let prep = t.params.depth_prep();
+    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None, 0);
+    let live = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
+    let lighting = super::relight::Lighting::new(ph.light.clone());
+    let relighter = super::relight::Relighter::new(&lighting);
+    let every = relighter.live_albedo(&live[0]);
+    for stride in [2, 3] {
+        let strided = relighter.live_albedo_every(&live[0], stride);
+        let (w, h) = strided.size();
+        for (x, y) in (0..h).flat_map(|y| (0..w).map(move |x| (x, y))) {
+            let expected = if x % stride == 0 && y % stride == 0 { every.at(x, y) } else { 0.0 };
+            assert_eq!(strided.at(x, y).to_bits(), expected.to_bits(), "({x}, {y}), stride {stride}");
+        }
+        let system = |albedo| {
+            let inputs = super::gn::Inputs { stride, ..level0(&live, &previous, Some((&relighter, albedo))) };
+            super::gn::accumulate(&inputs, &t_ref_live, &photometric_weights())
+        };
+        let (full, made_strided) = (system(&every), system(&strided));
+        assert!(made_strided.rgb_n > 1000, "{} photometric pixels", made_strided.rgb_n);
+        assert_eq!(format!("{full:?}"), format!("{made_strided:?}"), "stride {stride}");
+    }
+}
+
+#[test]
 fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     // The default pipeline's `vignetting` divides the lens-and-LED fall-off F out of the images
     // before tracking; `relight::Undivide` multiplies it back in, so that the relighting
