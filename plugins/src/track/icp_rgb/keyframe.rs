@@ -184,7 +184,7 @@ mod tests {
         let [kp, pp, lp] = [&k, &p, &l].map(|f| frames::live(f, &ph.camera, 1, &prep, None, 0));
         let lighting = Lighting::new(ph.light.clone());
         let relighter = Relighter::new(&lighting);
-        let albedo = relighter.live_albedo(&lp[0]);
+        let albedo = relighter.live_albedo(&lp[0], 1);
         let w = Weights {
             w_rgb: 1.0,
             sigma_icp_m: 3e-4,

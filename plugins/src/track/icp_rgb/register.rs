@@ -113,7 +113,7 @@ impl IcpRgb {
         // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
         let relighter = self.light.as_ref().map(Relighter::new);
         let albedo: Option<Vec<GrayF32>> =
-            relighter.as_ref().map(|r| live.iter().enumerate().map(|(level, lv)| r.live_albedo_every(lv, self.stride(level))).collect());
+            relighter.as_ref().map(|r| live.iter().enumerate().map(|(level, lv)| r.live_albedo(lv, self.stride(level))).collect());
         let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level);
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).

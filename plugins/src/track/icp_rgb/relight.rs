@@ -180,14 +180,10 @@ impl<'a> Relighter<'a> {
 
     /// The live level's intensity over the light's response at each pixel, `decode(I) /
     /// response` (the albedo up to the light's gain; 0 where the pixel has no surface or no
-    /// light): the pose-free half of the relighting, once per frame.
-    pub fn live_albedo(&self, live: &Level) -> GrayF32 {
-        self.live_albedo_every(live, 1)
-    }
-
-    /// [`Relighter::live_albedo`] at every `stride`-th pixel of every `stride`-th row, the ones
-    /// a Gauss-Newton system with that stride reads (`gn::Inputs::stride`); 0 elsewhere.
-    pub fn live_albedo_every(&self, live: &Level, stride: usize) -> GrayF32 {
+    /// light): the pose-free half of the relighting, once per frame. Made at every `stride`-th
+    /// pixel of every `stride`-th row only, the ones a Gauss-Newton system with that stride
+    /// reads (`gn::Inputs::stride`); 0 elsewhere.
+    pub fn live_albedo(&self, live: &Level, stride: usize) -> GrayF32 {
         let (w, h) = live.depth.size();
         let stride = stride.max(1);
         GrayF32::from_fn_par(w, h, |x, y| {

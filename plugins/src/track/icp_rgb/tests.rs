@@ -304,7 +304,7 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
     let w = photometric_weights();
     let lighting = super::relight::Lighting::new(ph.light.clone());
     let relighter = super::relight::Relighter::new(&lighting);
-    let albedo = relighter.live_albedo(&live[0]);
+    let albedo = relighter.live_albedo(&live[0], 1);
     let rms = |light: Option<&super::relight::Relighter>| {
         let s = super::gn::accumulate(&level0(&live, &previous, light.map(|l| (l, &albedo))), &t_ref_live, &w);
         assert!(s.rgb_n > 10_000, "{} photometric pixels", s.rgb_n);
@@ -327,9 +327,9 @@ fn the_albedo_made_at_the_systems_stride_relights_the_same_system() {
     let live = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
     let lighting = super::relight::Lighting::new(ph.light.clone());
     let relighter = super::relight::Relighter::new(&lighting);
-    let every = relighter.live_albedo(&live[0]);
+    let every = relighter.live_albedo(&live[0], 1);
     for stride in [2, 3] {
-        let strided = relighter.live_albedo_every(&live[0], stride);
+        let strided = relighter.live_albedo(&live[0], stride);
         let (w, h) = strided.size();
         for (x, y) in (0..h).flat_map(|y| (0..w).map(move |x| (x, y))) {
             let expected = if x % stride == 0 && y % stride == 0 { every.at(x, y) } else { 0.0 };
@@ -384,7 +384,7 @@ fn a_falloff_divided_image_is_restored_to_the_raw_one_before_it_is_relit() {
     let lighting = super::relight::Lighting::new(l.clone());
     let relighter = super::relight::Relighter::new(&lighting);
     let rms = |(previous, live, t_ref_live): &(Vec<super::frames::Level>, Vec<super::frames::Level>, capsule_slam_framework::Iso3)| {
-        let albedo = relighter.live_albedo(&live[0]);
+        let albedo = relighter.live_albedo(&live[0], 1);
         let s = super::gn::accumulate(&level0(live, previous, Some((&relighter, &albedo))), t_ref_live, &w);
         (s.rgb_sse / s.rgb_n as f64).sqrt()
     };
@@ -445,7 +445,7 @@ fn photometric_bias(ph: &capsule_slam_phantom::Phantom, frames: &[capsule_slam_f
             let previous = super::frames::live(&ab[0], &ph.camera, 3, &prep, None, margin_px);
             let live = super::frames::live(&ab[1], &ph.camera, 3, &prep, None, margin_px);
             let t_ref_live = ab[0].gt_t_world_cam.unwrap().inverse() * ab[1].gt_t_world_cam.unwrap();
-            let albedo = relighter.live_albedo(&live[0]);
+            let albedo = relighter.live_albedo(&live[0], 1);
             let s = super::gn::accumulate(&level0(&live, &previous, Some((&relighter, &albedo))), &t_ref_live, &w);
             assert_eq!(s.icp_n, 0);
             let d = s.step().unwrap();
