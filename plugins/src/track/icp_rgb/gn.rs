@@ -38,6 +38,9 @@ pub struct Weights {
     /// Warp the photometric term's live points at the inverse-variance mean of their depth and
     /// the model's ([`blended_point`]) where the frame carries a σ.
     pub rgb_model_depth: bool,
+    /// k in the photometric row's variance `σ_rgb² + (k ∇I · ∂u/∂ε · σ_ε)²` (the depth's error
+    /// carried through the warp); 0: `σ_rgb²` alone.
+    pub rgb_flow_sigma_scale: f64,
 }
 
 /// The upper triangle of a symmetric 6×6 matrix, row by row (21 values): rank-one updates cost
@@ -168,6 +171,10 @@ pub struct Inputs<'a> {
     pub t_photo_ref: Option<Iso3>,
     pub light: Relight<'a>,
     pub stride: usize,
+    /// A second photometric reference (the previous frame beside a keyframe,
+    /// `RgbReference::KeyframeAndPrevious`): a second row per live pixel against it, in the
+    /// reference camera or carried by its transform as `t_photo_ref`.
+    pub second: Option<(&'a Level, Option<Iso3>)>,
 }
 
 /// Accumulates the system of `t_ref_live`.
@@ -252,7 +259,17 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     }
     // A point moved by λ along the ray: the light's fall-off (∝ 1/distance², the light beside the
     // lens) makes its albedo λ² the live one's. Projected again; the Jacobian holds λ fixed.
-    photometric_row(inp, (x, y), blended.unwrap_or((s, 1.0)), t_ref_live, (w, sigma_live), sys);
+    // The warped depth's relative σ: the live depth's, or that of its blend with the model's.
+    let sigma_warp = match blended {
+        Some(_) if sigma_live > 0.0 && sigma_ref > 0.0 => sigma_live * sigma_ref / (sigma_live * sigma_live + sigma_ref * sigma_ref).sqrt(),
+        _ => sigma_live,
+    };
+    let sigma_rel = sigma_warp / f64::from(v.z);
+    let point = blended.unwrap_or((s, 1.0));
+    photometric_row(inp, (x, y), point, t_ref_live, (w, sigma_live, sigma_rel), sys);
+    if let Some((photo, t_photo_ref)) = inp.second {
+        photometric_row(&Inputs { photo, t_photo_ref, second: None, ..*inp }, (x, y), point, t_ref_live, (w, sigma_live, sigma_rel), sys);
+    }
 }
 
 /// The photometric row of live pixel `(x, y)` whose point `s` (reference frame; moved by `λ`
@@ -266,7 +283,7 @@ fn photometric_row(
     (x, y): (usize, usize),
     (s, lambda): (Vector3<f64>, f64),
     t_ref_live: &Iso3,
-    (w, sigma_live): (&Weights, f64),
+    (w, sigma_live, sigma_rel): (&Weights, f64, f64),
     sys: &mut System,
 ) {
     let (live, photo) = (inp.live, inp.photo);
@@ -300,10 +317,28 @@ fn photometric_row(
     let j = twist_row(&s, &inp.t_photo_ref.map_or(a, |t| t.rotation.inverse() * a));
     // A pixel resampled from fewer source pixels (an undistortion's stretched ring) shares its
     // noise and interpolation error with its neighbours: counted once (`Level::share`).
-    let wt = live.share_at(x, y) * w.w_rgb * huber(r / w.sigma_rgb, w.huber_k) / (w.sigma_rgb * w.sigma_rgb);
+    let (sigma, var) = photometric_sigma(w, a.dot(&t_photo_live_translation(inp, t_ref_live)) * sigma_rel);
+    let wt = live.share_at(x, y) * w.w_rgb * huber(r / sigma, w.huber_k) / var;
     sys.add_row(&j, r, wt);
     sys.rgb_n += 1;
     sys.rgb_sse += r * r;
+}
+
+/// The translation of the photometric reference's camera ← the live camera.
+fn t_photo_live_translation(inp: &Inputs<'_>, t_ref_live: &Iso3) -> Vector3<f64> {
+    inp.t_photo_ref.map_or(*t_ref_live, |t| t * t_ref_live).translation.vector
+}
+
+/// σ and σ² of a photometric residual whose depth-carried intensity error is `flow_sigma`
+/// (`∇I · ∂u/∂ε · σ_ε`, before the scale k): `σ² = σ_rgb² + (k · flow_sigma)²`; with k = 0,
+/// `σ_rgb` and `σ_rgb · σ_rgb` as they were.
+pub fn photometric_sigma(w: &Weights, flow_sigma: f64) -> (f64, f64) {
+    if w.rgb_flow_sigma_scale <= 0.0 {
+        return (w.sigma_rgb, w.sigma_rgb * w.sigma_rgb);
+    }
+    let flow = w.rgb_flow_sigma_scale * flow_sigma;
+    let var = w.sigma_rgb * w.sigma_rgb + flow * flow;
+    (var.sqrt(), var)
 }
 
 /// The live vertex `v` moved along its ray to the inverse-variance mean of its own depth (σ

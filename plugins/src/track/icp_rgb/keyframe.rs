@@ -196,8 +196,17 @@ mod tests {
             rgb_depth_gate_m: 0.002,
             rgb_min_gradient: 0.002,
             rgb_model_depth: false,
+            rgb_flow_sigma_scale: 0.0,
         };
-        let inputs = |reference, t_photo_ref| Inputs { live: &lp[0], reference, photo: &kp[0], t_photo_ref, light: Some((&relighter, &albedo)), stride: 1 };
+        let inputs = |reference, t_photo_ref| Inputs {
+            live: &lp[0],
+            reference,
+            photo: &kp[0],
+            t_photo_ref,
+            light: Some((&relighter, &albedo)),
+            stride: 1,
+            second: None,
+        };
         let through = gn::accumulate(&inputs(&pp[0], Some(t_kf_prev)), &t_prev_live, &w);
         let direct = gn::accumulate(&inputs(&kp[0], None), &(t_kf_prev * t_prev_live), &w);
         assert_eq!((through.icp_n, direct.icp_n), (0, 0), "the photometric term alone");

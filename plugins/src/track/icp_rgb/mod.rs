@@ -67,6 +67,19 @@ pub enum RgbReference {
     Keyframe,
     /// The predicted model colour (the paper).
     Model,
+    /// The last keyframe and the previous frame at once, one photometric row against each per
+    /// live pixel: the keyframe stops the previous frame's walk, the previous frame holds where
+    /// the keyframe's longer baseline carries the depth's error into the warp (weigh that by
+    /// `rgb_flow_sigma_scale`). For depth whose error is correlated across the image
+    /// (`docs/results/depth-noise.md`, "The keyframe and the previous frame at once").
+    KeyframeAndPrevious,
+}
+
+impl RgbReference {
+    /// Whether this reference keeps a keyframe (`keyframe.rs`).
+    pub fn keeps_keyframe(self) -> bool {
+        matches!(self, Self::Keyframe | Self::KeyframeAndPrevious)
+    }
 }
 
 /// The motion prior.
@@ -163,6 +176,16 @@ capsule_slam_framework::plugin_params! {
         /// plane of its ICP match, σ of a fused mean): the model averages many frames' noise
         /// (`gn::blended_point`; `docs/results/depth-noise.md`).
         pub rgb_model_depth: bool = true; unit = "-";
+        /// The depth's error moves a warped pixel: a relative error ε of the live point's depth
+        /// moves its image in the photometric reference by `∂u/∂ε = −J_π t` (t: the translation
+        /// from the live camera to the reference's), so its intensity by `∇I · ∂u/∂ε · σ_ε`
+        /// (Engel et al., LSD-SLAM, ECCV 2014, Eq. 12; σ_ε the blended depth's relative σ). Each
+        /// photometric row's variance is `σ_rgb² + (k ∇I · ∂u/∂ε · σ_ε)²` with this k; 0 leaves
+        /// σ_rgb alone. A keyframe's rows weigh less as its baseline grows. k = 1 counts each
+        /// pixel's depth error as independent; the smooth 5 % error is correlated over 80 px,
+        /// and 10 tracked best with `keyframe-and-previous` (the correlated count itself, ~40,
+        /// loses frames; `docs/results/depth-noise.md`).
+        pub rgb_flow_sigma_scale: f64 = 0.0; unit = "-"; range = 0.0..=1000.0;
         /// Smallest reference gradient for the photometric term, intensity per pixel.
         pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
         /// Valid depth range: nearest (ElasticFusion: 0.3 m, room scale).
@@ -310,6 +333,7 @@ impl IcpRgb {
             rgb_depth_gate_m: p.rgb_depth_gate_m,
             rgb_min_gradient: p.rgb_min_gradient,
             rgb_model_depth: p.rgb_model_depth,
+            rgb_flow_sigma_scale: p.rgb_flow_sigma_scale,
         }
     }
 }
@@ -406,3 +430,5 @@ register!(Tracker, IcpRgb);
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_references;

@@ -104,7 +104,7 @@ impl IcpRgb {
         ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let Some(reference) = reference else {
-            let keyframe = self.depth_noise(depth_source).rgb_reference == RgbReference::Keyframe;
+            let keyframe = self.depth_noise(depth_source).rgb_reference.keeps_keyframe();
             return Ok((self.without_reference(live, t_world_prev * prior, keyframe, ctx), None));
         };
         let noise = self.depth_noise(depth_source);
@@ -114,7 +114,8 @@ impl IcpRgb {
         let relighter = self.light.as_ref().map(Relighter::new);
         let albedo: Option<Vec<GrayF32>> =
             relighter.as_ref().map(|r| live.iter().enumerate().map(|(level, lv)| r.live_albedo(lv, self.stride(level))).collect());
-        let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level);
+        let second = Self::second_reference(noise.rgb_reference, photo, self.previous.as_deref());
+        let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level, second);
         let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
         // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
         let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
@@ -165,7 +166,8 @@ impl IcpRgb {
         self.keyframe = u.keyframe.clone();
         let photo = self.photometric_reference(noise.rgb_reference, u.before.as_ref(), self.keyframe.as_ref(), &u.reference);
         let relighter = self.light.as_ref().map(Relighter::new);
-        let inputs = |level: usize| self.level_inputs([&live, &u.reference], photo, relighter.as_ref(), u.albedo.as_deref(), level);
+        let second = Self::second_reference(noise.rgb_reference, photo, u.before.as_deref());
+        let inputs = |level: usize| self.level_inputs([&live, &u.reference], photo, relighter.as_ref(), u.albedo.as_deref(), level, second);
         let mut run = u.run;
         self.descend(&inputs, (u.resume_level, 0), u.resume_level == 0, &w, &mut run);
         let stale = self.keyframe_disagrees([&live, &u.reference], (photo, u.before.as_deref()), (relighter.as_ref(), u.albedo.as_deref()), &w, &mut run, ctx);
@@ -201,7 +203,7 @@ impl IcpRgb {
         ctx: &mut Context,
     ) -> bool {
         let (Some(_), Some(previous)) = (photo.1, previous) else { return false };
-        let f2f = self.level_inputs([live, reference], (previous, None), relighter, albedo, 0);
+        let f2f = self.level_inputs([live, reference], (previous, None), relighter, albedo, 0, None);
         let disagreement = accumulate(&f2f, &run.t, w).step_chi2();
         ctx.count("keyframe_disagreement", disagreement);
         if disagreement <= self.params.keyframe_max_disagreement {
@@ -231,11 +233,17 @@ impl IcpRgb {
     ) -> Photo<'a> {
         match (kind, previous, keyframe) {
             // Just taken, the keyframe is the previous frame.
-            (RgbReference::Keyframe, _, Some(kf)) if kf.t_kf_prev == Iso3::identity() => (&kf.pyramid, None),
-            (RgbReference::Keyframe, _, Some(kf)) => (&kf.pyramid, Some(kf.t_kf_prev)),
-            (RgbReference::PreviousFrame | RgbReference::Keyframe, Some(p), _) => (p, None),
+            (RgbReference::Keyframe | RgbReference::KeyframeAndPrevious, _, Some(kf)) if kf.t_kf_prev == Iso3::identity() => (&kf.pyramid, None),
+            (RgbReference::Keyframe | RgbReference::KeyframeAndPrevious, _, Some(kf)) => (&kf.pyramid, Some(kf.t_kf_prev)),
+            (RgbReference::PreviousFrame | RgbReference::Keyframe | RgbReference::KeyframeAndPrevious, Some(p), _) => (p, None),
             _ => (reference, None),
         }
+    }
+
+    /// The previous frame as a second photometric reference: with `keyframe-and-previous`,
+    /// while the keyframe (`photo`, carried by its transform) is an older frame.
+    fn second_reference<'a>(kind: RgbReference, (_, t_photo_ref): Photo<'a>, previous: Option<&'a [Level]>) -> Option<&'a [Level]> {
+        (kind == RgbReference::KeyframeAndPrevious && t_photo_ref.is_some()).then_some(previous).flatten()
     }
 
     /// One level's Gauss-Newton inputs from the live, reference and photometric pyramids and
@@ -247,6 +255,7 @@ impl IcpRgb {
         relighter: Option<&'a Relighter<'a>>,
         albedo: Option<&'a [GrayF32]>,
         level: usize,
+        second: Option<&'a [Level]>,
     ) -> gn::Inputs<'a> {
         gn::Inputs {
             live: &live[level],
@@ -255,6 +264,7 @@ impl IcpRgb {
             t_photo_ref,
             light: relighter.zip(albedo).map(|(r, a)| (r, &a[level])),
             stride: self.stride(level),
+            second: second.map(|p| (&p[level], None)),
         }
     }
 
@@ -326,7 +336,7 @@ impl IcpRgb {
             }
             None => {
                 self.velocity = Some(t);
-                if noise.rgb_reference == RgbReference::Keyframe {
+                if noise.rgb_reference.keeps_keyframe() {
                     let policy = self.params.keyframe_policy();
                     ctx.count("keyframe_new", f64::from(u8::from(Keyframe::advance(&mut self.keyframe, &live, &t, fin.rgb_n, &policy))));
                 }

@@ -70,7 +70,7 @@ fn the_motion_prior_does_not_bias_a_static_camera() {
 }
 
 /// The live and reference pyramids of two phantom frames, the live one with a uniform depth σ.
-fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::frames::Level>) {
+pub(super) fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::frames::Level>) {
     let ph = phantom(5, 300, 0.0);
     let t = tracker(IcpRgbParams::default(), &ph);
     let (a, mut b) = (rgbd(&ph, 60), rgbd(&ph, 61));
@@ -89,13 +89,13 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     let t = |floor: f64| super::gn::Weights { w_rgb: 0.0, sigma_icp_m: floor, rgb_min_gradient: 0.002, ..photometric_weights() };
     let (live, reference) = levels(None);
     let a = super::gn::accumulate(
-        &super::gn::Inputs { live: &live[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &super::gn::Inputs { live: &live[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1, second: None },
         &gap,
         &t(1e-3),
     );
     let (live_s, _) = levels(Some((1e-6f32 - 1e-8).sqrt()));
     let b = super::gn::accumulate(
-        &super::gn::Inputs { live: &live_s[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &super::gn::Inputs { live: &live_s[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1, second: None },
         &gap,
         &t(1e-4),
     );
@@ -108,7 +108,7 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     let (rw, rh) = reference_s.depth.size();
     reference_s.sigma = Some(capsule_slam_framework::DepthMap::from_fn(rw, rh, |_, _| [(1e-6f32 - 1e-8).sqrt()]));
     let d = super::gn::accumulate(
-        &super::gn::Inputs { live: &live[1], reference: &reference_s, photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &super::gn::Inputs { live: &live[1], reference: &reference_s, photo: &reference[1], t_photo_ref: None, light: None, stride: 1, second: None },
         &gap,
         &t(1e-4),
     );
@@ -119,7 +119,7 @@ fn a_residual_counts_by_its_own_sigma_whatever_its_source() {
     // many σ, and it weighs 1/1.2² (inside the Huber threshold) to 1/1.2 (outside) as much.
     let (live_2, _) = levels(Some(1.2e-3));
     let c = super::gn::accumulate(
-        &super::gn::Inputs { live: &live_2[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1 },
+        &super::gn::Inputs { live: &live_2[1], reference: &reference[1], photo: &reference[1], t_photo_ref: None, light: None, stride: 1, second: None },
         &gap,
         &t(1e-9),
     );
@@ -268,13 +268,13 @@ fn a_frame_with_a_five_percent_smooth_depth_error_is_tracked_with_its_sigma() {
 
 /// The level-0 inputs of `live` against the previous frame `previous` (ICP and photometric
 /// reference alike), every pixel, relit with `light`.
-fn level0<'a>(live: &'a [super::frames::Level], previous: &'a [super::frames::Level], light: super::gn::Relight<'a>) -> super::gn::Inputs<'a> {
-    super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], t_photo_ref: None, light, stride: 1 }
+pub(super) fn level0<'a>(live: &'a [super::frames::Level], previous: &'a [super::frames::Level], light: super::gn::Relight<'a>) -> super::gn::Inputs<'a> {
+    super::gn::Inputs { live: &live[0], reference: &previous[0], photo: &previous[0], t_photo_ref: None, light, stride: 1, second: None }
 }
 
 /// The default weights with every photometric pixel counted (no gradient threshold) and the
 /// photometric term at full weight: for comparing intensity residuals.
-fn photometric_weights() -> super::gn::Weights {
+pub(super) fn photometric_weights() -> super::gn::Weights {
     super::gn::Weights {
         w_rgb: 1.0,
         sigma_icp_m: 3e-4,
@@ -286,6 +286,7 @@ fn photometric_weights() -> super::gn::Weights {
         rgb_depth_gate_m: 0.002,
         rgb_min_gradient: 0.0,
         rgb_model_depth: false,
+        rgb_flow_sigma_scale: 0.0,
     }
 }
 
