@@ -290,18 +290,25 @@ pub(super) fn photometric_weights() -> super::gn::Weights {
     }
 }
 
+/// The phantom (preset 1), the pyramids of frames `i` (previous) and `j` (live) and their true
+/// relative pose.
+fn pair(i: usize, j: usize) -> (capsule_slam_phantom::Phantom, Vec<super::frames::Level>, Vec<super::frames::Level>, Iso3) {
+    let ph = phantom(1, 300, 0.0);
+    let t = tracker(IcpRgbParams::default(), &ph);
+    let (a, b) = (rgbd(&ph, i), rgbd(&ph, j));
+    let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
+    let prep = t.params.depth_prep();
+    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None, 0);
+    let live = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
+    (ph, previous, live, t_ref_live)
+}
+
 #[test]
 fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving_camera() {
     // Two frames 12 apart (3 mm) at their true relative pose: the light moved with the camera,
     // so the intensities differ although nothing else did; the light model's relighting
     // removes it.
-    let ph = phantom(1, 300, 0.0);
-    let t = tracker(IcpRgbParams::default(), &ph);
-    let (a, b) = (rgbd(&ph, 100), rgbd(&ph, 112));
-    let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
-    let prep = t.params.depth_prep();
-    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None, 0);
-    let live = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
+    let (ph, previous, live, t_ref_live) = pair(100, 112);
     let w = photometric_weights();
     let lighting = super::relight::Lighting::new(ph.light.clone());
     let relighter = super::relight::Relighter::new(&lighting);
@@ -319,13 +326,7 @@ fn relighting_with_the_capsules_light_explains_the_brightness_change_of_a_moving
 fn the_albedo_made_at_the_systems_stride_relights_the_same_system() {
     // Level 0 reads every `stride_l0`-th pixel, so its live albedo is made there only: the
     // system is the same to the bit, and the pixels off the grid have none.
-    let ph = phantom(1, 300, 0.0);
-    let t = tracker(IcpRgbParams::default(), &ph);
-    let (a, b) = (rgbd(&ph, 100), rgbd(&ph, 104));
-    let t_ref_live = a.gt_t_world_cam.unwrap().inverse() * b.gt_t_world_cam.unwrap();
-    let prep = t.params.depth_prep();
-    let previous = super::frames::live(&a, &ph.camera, 3, &prep, None, 0);
-    let live = super::frames::live(&b, &ph.camera, 3, &prep, None, 0);
+    let (ph, previous, live, t_ref_live) = pair(100, 104);
     let lighting = super::relight::Lighting::new(ph.light.clone());
     let relighter = super::relight::Relighter::new(&lighting);
     let every = relighter.live_albedo(&live[0], 1);
