@@ -183,8 +183,9 @@ capsule_slam_framework::plugin_params! {
         /// photometric row's variance is `σ_rgb² + (k ∇I · ∂u/∂ε · σ_ε)²` with this k; 0 leaves
         /// σ_rgb alone. A keyframe's rows weigh less as its baseline grows. k = 1 counts each
         /// pixel's depth error as independent; the smooth 5 % error is correlated over 80 px,
-        /// and 10 tracked best with `keyframe-and-previous` (the correlated count itself, ~40,
-        /// loses frames; `docs/results/depth-noise.md`).
+        /// and 10 tracked best with `keyframe-and-previous` (k at the square root of the
+        /// correlated count, about 40, lost the pose on fast preset 4;
+        /// `docs/results/depth-noise.md`).
         pub rgb_flow_sigma_scale: f64 = 0.0; unit = "-"; range = 0.0..=1000.0;
         /// Smallest reference gradient for the photometric term, intensity per pixel.
         pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
