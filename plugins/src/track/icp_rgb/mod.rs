@@ -179,8 +179,9 @@ capsule_slam_framework::plugin_params! {
         /// The depth's error moves a warped pixel: a relative error ε of the live point's depth
         /// moves its image in the photometric reference by `∂u/∂ε = −J_π t` (t: the translation
         /// from the live camera to the reference's), so its intensity by `∇I · ∂u/∂ε · σ_ε`
-        /// (Engel et al., LSD-SLAM, ECCV 2014, Eq. 12; σ_ε the blended depth's relative σ). Each
-        /// photometric row's variance is `σ_rgb² + (k ∇I · ∂u/∂ε · σ_ε)²` with this k; 0 leaves
+        /// (Engel et al., LSD-SLAM, ECCV 2014, its photometric variance; σ_ε the blended depth's
+        /// relative σ). Each photometric row's variance is `σ_rgb² + (k ∇I · ∂u/∂ε · σ_ε)²` with
+        /// this k; 0 leaves
         /// σ_rgb alone. A keyframe's rows weigh less as its baseline grows. k = 1 counts each
         /// pixel's depth error as independent; the smooth 5 % error is correlated over 80 px,
         /// and 10 tracked best with `keyframe-and-previous` (k at the square root of the
