@@ -73,12 +73,34 @@ pub enum RgbReference {
     /// `rgb_flow_sigma_scale`). For depth whose error is correlated across the image
     /// (`docs/results/depth-noise.md`, "The keyframe and the previous frame at once").
     KeyframeAndPrevious,
+    /// `keyframe-and-previous` where the frame's depth error is correlated across pixels (its
+    /// σ declares a `correlation_px` > 0: `camera.toml`'s `depth_noise`, `stereo-sgm`'s depth)
+    /// and a light model relights the photometric term, else `previous-frame`. Such an error
+    /// cannot anchor the pose through ICP (counted once per correlated patch), so the
+    /// photometric term carries it, and against the previous frame alone it walks. Without
+    /// the relighting a capsule's moving light changes the wall's brightness across a
+    /// keyframe's baseline (about 20 % for 3 mm at 30 mm): on a fast stereo phantom without
+    /// `light.toml` the keyframe's rows took the ATE from 0.61 to 1.64 % of the path
+    /// (`docs/results/depth-noise.md`). A room lit by lamps that stay put needs no relighting:
+    /// set `keyframe-and-previous` there.
+    Auto,
 }
 
 impl RgbReference {
     /// Whether this reference keeps a keyframe (`keyframe.rs`).
     pub fn keeps_keyframe(self) -> bool {
         matches!(self, Self::Keyframe | Self::KeyframeAndPrevious)
+    }
+
+    /// The reference for a frame whose depth error is correlated over `correlation_px` pixels
+    /// (0: independent from pixel to pixel), `relit` where a light model relights the
+    /// photometric term: [`RgbReference::Auto`] resolved, the others as they are.
+    pub fn for_frame(self, correlation_px: f64, relit: bool) -> Self {
+        match self {
+            Self::Auto if correlation_px > 0.0 && relit => Self::KeyframeAndPrevious,
+            Self::Auto => Self::PreviousFrame,
+            other => other,
+        }
     }
 }
 
@@ -99,11 +121,14 @@ capsule_slam_framework::plugin_params! {
         pub mode: Mode = Mode::FrameToModel; unit = "-";
         /// `constant-velocity` or `none`.
         pub motion_model: MotionModel = MotionModel::ConstantVelocity; unit = "-";
-        /// Photometric reference for measured depth: `previous-frame` (robust to the moving
-        /// light), `keyframe` (the last keyframe, `keyframe.rs`) or `model`. With the 5 % smooth
-        /// depth error a keyframe tracked better on presets 1 and 5 and worse on 4
-        /// (`docs/results/depth.md`, "A keyframe as the photometric reference").
-        pub rgb_reference: RgbReference = RgbReference::PreviousFrame; unit = "-";
+        /// Photometric reference for measured depth: `auto` (`keyframe-and-previous` where the
+        /// depth's error is correlated across pixels, else `previous-frame`), `previous-frame`
+        /// (robust to the moving light), `keyframe` (the last keyframe, `keyframe.rs`),
+        /// `keyframe-and-previous` or `model`. With the 5 % smooth depth error
+        /// `keyframe-and-previous` tracked presets 1, 4, 5 to 0.147 / 0.137 / 0.091 % against
+        /// 0.244 / 0.148 / 0.157 % with the previous frame, and the stereo phantoms 11–18 %
+        /// better (`docs/results/depth-noise.md`).
+        pub rgb_reference: RgbReference = RgbReference::Auto; unit = "-";
         /// The same for depth estimated from the image, where the photometric term carries the
         /// tracking. A keyframe lowered the monocular ATE on 4 of the 7 rigid presets (mean
         /// −13 %), and on walls moving by 2–4 mm was better on 4 of 10 and worse on 4
@@ -179,15 +204,16 @@ capsule_slam_framework::plugin_params! {
         /// The depth's error moves a warped pixel: a relative error ε of the live point's depth
         /// moves its image in the photometric reference by `∂u/∂ε = −J_π t` (t: the translation
         /// from the live camera to the reference's), so its intensity by `∇I · ∂u/∂ε · σ_ε`
-        /// (Engel et al., LSD-SLAM, ECCV 2014, its photometric variance; σ_ε the blended depth's
-        /// relative σ). Each photometric row's variance is `σ_rgb² + (k ∇I · ∂u/∂ε · σ_ε)²` with
-        /// this k; 0 leaves
-        /// σ_rgb alone. A keyframe's rows weigh less as its baseline grows. k = 1 counts each
-        /// pixel's depth error as independent; the smooth 5 % error is correlated over 80 px,
-        /// and 10 tracked best with `keyframe-and-previous` (k at the square root of the
-        /// correlated count, about 40, lost the pose on fast preset 4;
+        /// (Engel et al., LSD-SLAM, ECCV 2014, its photometric variance; σ_ε the
+        /// blended depth's relative σ). Each photometric row's variance is `σ_rgb² + (k ∇I ·
+        /// ∂u/∂ε · σ_ε)²` with this k, with the references that keep a keyframe (`keyframe`, and
+        /// both rows of `keyframe-and-previous`; with `previous-frame` or `model` the rows keep
+        /// σ_rgb); 0 leaves σ_rgb alone. A keyframe's rows weigh less as its baseline grows.
+        /// k = 1 counts each pixel's depth error as independent; the smooth 5 % error is
+        /// correlated over 80 px, and 10 tracked best with `keyframe-and-previous` (k at the
+        /// square root of the correlated count, about 40, lost the pose on fast preset 4;
         /// `docs/results/depth-noise.md`).
-        pub rgb_flow_sigma_scale: f64 = 0.0; unit = "-"; range = 0.0..=1000.0;
+        pub rgb_flow_sigma_scale: f64 = 10.0; unit = "-"; range = 0.0..=1000.0;
         /// Smallest reference gradient for the photometric term, intensity per pixel.
         pub rgb_min_gradient: f64 = 0.002; unit = "1/px"; range = 0.0..=1.0;
         /// Valid depth range: nearest (ElasticFusion: 0.3 m, room scale).
@@ -303,10 +329,11 @@ impl IcpRgb {
         Ok(Self { light, missing, ..Self::new(params) })
     }
 
-    /// The ICP noise scale, loss residual and loss inlier share for a depth source.
-    fn depth_noise(&self, source: DepthSource) -> DepthNoise {
+    /// The ICP noise scale, loss residual, loss inlier share and photometric reference for depth
+    /// from `source` whose error is correlated over `correlation_px` pixels (the live frame's).
+    fn depth_noise(&self, source: DepthSource, correlation_px: f64) -> DepthNoise {
         let p = &self.params;
-        match source {
+        let noise = match source {
             DepthSource::Measured => DepthNoise {
                 sigma_icp_m: p.sigma_icp_m,
                 max_residual_m: p.max_residual_m,
@@ -319,7 +346,8 @@ impl IcpRgb {
                 min_inlier_fraction: p.min_inlier_fraction_estimated,
                 rgb_reference: p.rgb_reference_estimated,
             },
-        }
+        };
+        DepthNoise { rgb_reference: noise.rgb_reference.for_frame(correlation_px, self.light.is_some()), ..noise }
     }
 
     fn weights(&self, noise: &DepthNoise) -> Weights {
@@ -335,7 +363,7 @@ impl IcpRgb {
             rgb_depth_gate_m: p.rgb_depth_gate_m,
             rgb_min_gradient: p.rgb_min_gradient,
             rgb_model_depth: p.rgb_model_depth,
-            rgb_flow_sigma_scale: p.rgb_flow_sigma_scale,
+            rgb_flow_sigma_scale: if noise.rgb_reference.keeps_keyframe() { p.rgb_flow_sigma_scale } else { 0.0 },
         }
     }
 }

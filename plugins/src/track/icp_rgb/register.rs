@@ -104,10 +104,10 @@ impl IcpRgb {
         ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
         let clock = std::time::Instant::now();
         let Some(reference) = reference else {
-            let keyframe = self.depth_noise(depth_source).rgb_reference.keeps_keyframe();
+            let keyframe = self.depth_noise(depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px)).rgb_reference.keeps_keyframe();
             return Ok((self.without_reference(live, t_world_prev * prior, keyframe, ctx), None));
         };
-        let noise = self.depth_noise(depth_source);
+        let noise = self.depth_noise(depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px));
         let photo = self.photometric_reference(noise.rgb_reference, self.previous.as_ref(), self.keyframe.as_ref(), &reference);
         let w = self.weights(&noise);
         // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
@@ -160,7 +160,7 @@ impl IcpRgb {
         let u = self.unfinished.take()?;
         let live = self.previous.take()?;
         let clock = std::time::Instant::now();
-        let noise = self.depth_noise(u.depth_source);
+        let noise = self.depth_noise(u.depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px));
         let w = self.weights(&noise);
         // The keyframe as the registration found it (the coarse result moved it on).
         self.keyframe = u.keyframe.clone();

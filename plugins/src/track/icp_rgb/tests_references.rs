@@ -85,3 +85,18 @@ fn the_depths_error_weighs_a_row_less_the_farther_the_reference_camera_moved() {
     let (plain, flow) = (info(&moved, &w), info(&moved, &scaled));
     assert!(flow < 0.9 * plain, "2 mm away: {flow} against {plain}");
 }
+
+#[test]
+fn auto_reads_a_keyframe_beside_the_previous_frame_only_where_the_depth_error_is_correlated_and_relit() {
+    use super::RgbReference::{Auto, Keyframe, KeyframeAndPrevious, Model, PreviousFrame};
+    assert_eq!(Auto.for_frame(0.0, true), PreviousFrame);
+    assert_eq!(Auto.for_frame(8.0, true), KeyframeAndPrevious);
+    assert_eq!(Auto.for_frame(0.25, true), KeyframeAndPrevious);
+    assert_eq!(Auto.for_frame(8.0, false), PreviousFrame, "unlit, a keyframe's brightness is not the live frame's");
+    for kind in [PreviousFrame, Keyframe, KeyframeAndPrevious, Model] {
+        for relit in [false, true] {
+            assert_eq!((kind.for_frame(0.0, relit), kind.for_frame(80.0, relit)), (kind, kind));
+        }
+    }
+    assert!(KeyframeAndPrevious.keeps_keyframe() && Keyframe.keeps_keyframe() && !PreviousFrame.keeps_keyframe() && !Model.keeps_keyframe());
+}
