@@ -169,6 +169,9 @@ capsule_slam_framework::plugin_params! {
     pub struct WarpTrackerParams {
         /// Translation of the whole map per tracked frame, metres.
         pub shift_m: Vec<f64> = vec![0.0, 0.0, 0.0001]; unit = "m";
+        /// Relative depth σ the tracker says it weighed every frame by
+        /// (`Tracker::depth_noise_in_use`; 0: none).
+        pub noise_relative: f64 = 0.0; unit = "-"; range = 0.0..=1.0;
     }
 }
 
@@ -200,6 +203,16 @@ impl Tracker for WarpTracker {
             result.warp = Some(Deformation::new(vec![node], 1, Window::All));
         }
         Ok(result)
+    }
+
+    fn depth_noise_in_use(&self) -> Option<capsule_slam_framework::depth_noise::DepthNoiseModel> {
+        let relative = self.params.noise_relative;
+        (relative > 0.0).then_some(capsule_slam_framework::depth_noise::DepthNoiseModel {
+            absolute_m: 0.0,
+            relative,
+            quadratic_per_m: 0.0,
+            correlation_px: 0.0,
+        })
     }
 }
 

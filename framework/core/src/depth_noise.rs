@@ -8,6 +8,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigProblem;
+use crate::image::DepthMap;
 
 /// A depth noise model: `σ(z) = absolute_m + relative · z + quadratic_per_m · z²`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -34,6 +35,25 @@ impl DepthNoiseModel {
     /// σ at depth `z_m`, metres.
     pub fn sigma_m(&self, z_m: f64) -> f64 {
         self.absolute_m + self.relative * z_m + self.quadratic_per_m * z_m * z_m
+    }
+
+    /// Raises a per-pixel σ image (`sigma_m`, made where there is none) to this model's σ of
+    /// each pixel with depth in `depth_m` wherever the model's is larger, and its correlation
+    /// length to this model's: the floor a tracker that measured the depth's error puts under
+    /// the frame's own σ ([`crate::Tracker::depth_noise_in_use`]). A σ image of another size
+    /// than the depth is replaced.
+    pub fn raise(&self, depth_m: &DepthMap, sigma_m: &mut Option<DepthMap>, correlation_px: &mut f64) {
+        let (w, h) = depth_m.size();
+        let sigma = match sigma_m {
+            Some(s) if s.size() == (w, h) => s,
+            other => other.insert(DepthMap::new(w, h)),
+        };
+        for (s, z) in sigma.data_mut().iter_mut().zip(depth_m.data()) {
+            if *z > 0.0 {
+                *s = s.max(self.sigma_m(f64::from(*z)) as f32);
+            }
+        }
+        *correlation_px = correlation_px.max(self.correlation_px);
     }
 
     /// Every problem of the model, keys prefixed with `prefix` (e.g. `depth_noise.`).
@@ -67,6 +87,25 @@ impl DepthNoiseModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn raising_keeps_the_larger_sigma_per_pixel_and_the_longer_correlation() {
+        let depth = DepthMap::from_fn(3, 1, |x, _| [[0.05f32, 0.0, 0.1][x]]);
+        let m = DepthNoiseModel { absolute_m: 0.0, relative: 0.04, quadratic_per_m: 0.0, correlation_px: 60.0 };
+        let mut sigma = Some(DepthMap::from_fn(3, 1, |x, _| [[0.001f32, 0.001, 0.009][x]]));
+        let mut corr = 8.0;
+        m.raise(&depth, &mut sigma, &mut corr);
+        let s = sigma.expect("σ");
+        assert_eq!((s.at(0, 0), s.at(1, 0), s.at(2, 0)), (0.002, 0.001, 0.009), "raised, no depth, already larger");
+        assert_eq!(corr, 60.0);
+        // No σ image, or one of the wrong size: made from the model alone.
+        for mut none in [None, Some(DepthMap::new(2, 2))] {
+            let mut corr = 100.0;
+            m.raise(&depth, &mut none, &mut corr);
+            let s = none.expect("σ made");
+            assert_eq!((s.size(), s.at(0, 0), s.at(1, 0), corr), ((3, 1), 0.002, 0.0, 100.0));
+        }
+    }
 
     #[test]
     fn sigma_adds_the_three_terms() {

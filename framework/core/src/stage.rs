@@ -147,6 +147,15 @@ pub trait Tracker: Send {
     fn prepare(&mut self, frame: &RgbdFrame, ctx: &mut Context) {
         let _ = (frame, ctx);
     }
+    /// The depth noise the last [`Tracker::track`] weighed its frame by, where that was more
+    /// than the frame's own σ: a tracker that measures the depth's error against the model
+    /// (`icp-rgb`'s `depth_error_factor`) and found the declared σ too small. The pipeline
+    /// raises the frame's σ to it ([`crate::depth_noise::DepthNoiseModel::raise`]) before the
+    /// fuser weighs the frame, so that map and tracker read the same noise. None by default:
+    /// the frame's σ stands.
+    fn depth_noise_in_use(&self) -> Option<crate::depth_noise::DepthNoiseModel> {
+        None
+    }
 }
 
 /// Counts from fusing one frame.

@@ -274,11 +274,16 @@ impl Pipeline {
             Pending::Raw(frame) => front.preprocess_kept(*frame, prediction),
             Pending::Prepared(p) => *p,
         };
-        let rgbd = match frame? {
+        let mut rgbd = match frame? {
             Ahead::Preprocessed(frame) => front.estimate_depth(frame, &mut rec, prediction)?,
             Ahead::Rgbd(rgbd) => rgbd,
         };
         let tr = self.track(&rgbd, &mut rec)?;
+        // The noise the tracker found in this depth, where it outweighs the frame's own σ: the
+        // map weighs the frame as the tracker did (`Tracker::depth_noise_in_use`).
+        if let Some(noise) = self.stages.tracker.1.depth_noise_in_use() {
+            noise.raise(&rgbd.depth_m, &mut rgbd.depth_sigma_m, &mut rgbd.depth_sigma_correlation_px);
+        }
         let mut pose = tr.t_world_cam;
         let mut next = next.map(|f| Pending::Raw(Box::new(f)));
         if tr.status == TrackStatus::Tracked {

@@ -79,7 +79,7 @@ impl IcpRgb {
     #[allow(clippy::too_many_arguments, reason = "the registration's inputs and where it stops")]
     pub(crate) fn register_pyramid(
         &mut self,
-        live: Vec<Level>,
+        mut live: Vec<Level>,
         depth_source: DepthSource,
         model: Option<&ModelView>,
         t_world_prev: &Iso3,
@@ -107,49 +107,90 @@ impl IcpRgb {
             let keyframe = self.depth_noise(depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px)).rgb_reference.keeps_keyframe();
             return Ok((self.without_reference(live, t_world_prev * prior, keyframe, ctx), None));
         };
-        let noise = self.depth_noise(depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px));
-        let photo = self.photometric_reference(noise.rgb_reference, self.previous.as_ref(), self.keyframe.as_ref(), &reference);
-        let w = self.weights(&noise);
-        // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
-        let relighter = self.light.as_ref().map(Relighter::new);
-        let albedo: Option<Vec<GrayF32>> =
-            relighter.as_ref().map(|r| live.iter().enumerate().map(|(level, lv)| r.live_albedo(lv, self.stride(level))).collect());
-        let second = Self::second_reference(noise.rgb_reference, photo, self.previous.as_deref());
-        let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level, second);
-        let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
-        // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
-        let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
-        if let Stop::Coarse { lowest } = stop {
-            self.descend(&inputs, (LEVELS - 1, lowest), false, &w, &mut run);
-            // Level 0's first iteration from here; the levels skipped resume from `coarse`.
-            let coarse = run;
-            (run.on_level, run.level_ended) = (0, false);
-            self.iterate(&inputs(0), 0, &w, &mut run, self.params.iterations_l0.min(1));
-            let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
-            let (resume, resume_level) = if lowest > 1 { (coarse, lowest - 1) } else { (run, 0) };
-            if self.lost_why(&fin, &noise, &prior, &run.t).is_none() {
-                ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
-                let (velocity, keyframe) = (self.velocity, self.keyframe.clone());
-                let (result, before) = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx);
-                let t_world_prev = *t_world_prev;
-                self.unfinished =
-                    Some(Box::new(Unfinished { reference, before, velocity, keyframe, albedo, prior, run: resume, resume_level, t_world_prev, depth_source }));
-                return Ok((result, initial));
+        // Registered once more, weighed by the measured depth error, where the frame's own
+        // residuals show its σ too small (`measured_noise.rs`).
+        let mut retried = false;
+        loop {
+            let noise = self.depth_noise(depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px));
+            let photo = self.photometric_reference(noise.rgb_reference, self.previous.as_ref(), self.keyframe.as_ref(), &reference);
+            let w = self.weights(&noise);
+            // The pose-free half of the relighting, per level (`Relighter::live_albedo`).
+            let relighter = self.light.as_ref().map(Relighter::new);
+            let albedo: Option<Vec<GrayF32>> =
+                relighter.as_ref().map(|r| live.iter().enumerate().map(|(level, lv)| r.live_albedo(lv, self.stride(level))).collect());
+            let second = Self::second_reference(noise.rgb_reference, photo, self.previous.as_deref());
+            let inputs = |level: usize| self.level_inputs([&live, &reference], photo, relighter.as_ref(), albedo.as_deref(), level, second);
+            let initial = initial.then(|| accumulate(&inputs(0), &prior, &w).icp_rms());
+            // Gauss-Newton from the coarsest level, starting at the prior (Eqs. 2–4).
+            let mut run = Run { t: prior, iterations: 0, on_level: 0, level_ended: false, fin: None };
+            if let Stop::Coarse { lowest } = stop {
+                self.descend(&inputs, (LEVELS - 1, lowest), false, &w, &mut run);
+                // Level 0's first iteration from here; the levels skipped resume from `coarse`.
+                let coarse = run;
+                (run.on_level, run.level_ended) = (0, false);
+                self.iterate(&inputs(0), 0, &w, &mut run, self.params.iterations_l0.min(1));
+                let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+                let (resume, resume_level) = if lowest > 1 { (coarse, lowest - 1) } else { (run, 0) };
+                if self.lost_why(&fin, &noise, &prior, &run.t).is_none() {
+                    if !std::mem::replace(&mut retried, true) && self.measure_noise(&mut live, &reference, &run.t, depth_source, ctx) {
+                        continue;
+                    }
+                    ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
+                    let (velocity, keyframe) = (self.velocity, self.keyframe.clone());
+                    let (result, before) = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx);
+                    let t_world_prev = *t_world_prev;
+                    self.unfinished = Some(Box::new(Unfinished {
+                        reference,
+                        before,
+                        velocity,
+                        keyframe,
+                        albedo,
+                        prior,
+                        run: resume,
+                        resume_level,
+                        t_world_prev,
+                        depth_source,
+                    }));
+                    return Ok((result, initial));
+                }
+                // Lost there: finished now, as the uninterrupted registration.
+                run = resume;
+                self.descend(&inputs, (resume_level, 0), resume_level == 0, &w, &mut run);
+            } else {
+                self.descend(&inputs, (LEVELS - 1, 0), false, &w, &mut run);
             }
-            // Lost there: finished now, as the uninterrupted registration.
-            run = resume;
-            self.descend(&inputs, (resume_level, 0), resume_level == 0, &w, &mut run);
-        } else {
-            self.descend(&inputs, (LEVELS - 1, 0), false, &w, &mut run);
+            let previous = self.previous.as_deref();
+            let stale = self.keyframe_disagrees([&live, &reference], (photo, previous), (relighter.as_ref(), albedo.as_deref()), &w, &mut run, ctx);
+            let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
+            if stale {
+                self.keyframe = None;
+            }
+            // A lost frame's error is read at the prior, the better guess of its pose.
+            let at = if self.lost_why(&fin, &noise, &prior, &run.t).is_some() { prior } else { run.t };
+            if !std::mem::replace(&mut retried, true) && self.measure_noise(&mut live, &reference, &at, depth_source, ctx) {
+                continue;
+            }
+            ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
+            return Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial));
         }
-        let previous = self.previous.as_deref();
-        let stale = self.keyframe_disagrees([&live, &reference], (photo, previous), (relighter.as_ref(), albedo.as_deref()), &w, &mut run, ctx);
-        let fin = run.fin.unwrap_or_else(|| accumulate(&inputs(0), &run.t, &w));
-        if stale {
-            self.keyframe = None;
+    }
+
+    /// Measures the depth error of `live` (measured depth) at the pose `t` against `reference`
+    /// into the running estimate ([`IcpRgb::observe_depth_error`]); where the estimate now
+    /// outweighs the frame's σ by `depth_error_factor`, raises it
+    /// ([`IcpRgb::weigh_by_measured_error`]) and returns true: the frame is registered again.
+    fn measure_noise(&mut self, live: &mut [Level], reference: &[Level], t: &Iso3, depth_source: DepthSource, ctx: &mut Context) -> bool {
+        if depth_source != DepthSource::Measured {
+            return false;
         }
-        ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
-        Ok((self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx).0, initial))
+        self.observe_depth_error(live, reference, t);
+        let before = self.noise_in_use;
+        self.weigh_by_measured_error(live, ctx);
+        let again = self.noise_in_use.is_some() && self.noise_in_use != before;
+        if again {
+            ctx.count("depth_error_retried", 1.0);
+        }
+        again
     }
 
     /// Runs the rest of the registration [`IcpRgb::register_pyramid`] stopped short of

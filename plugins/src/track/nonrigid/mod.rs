@@ -212,6 +212,11 @@ impl Tracker for Nonrigid {
     fn prepare(&mut self, frame: &RgbdFrame, ctx: &mut Context) {
         self.rigid.prepare(frame, ctx);
     }
+
+    /// The rigid start's: its live pyramid, which the joint solve reads, carries the raised σ.
+    fn depth_noise_in_use(&self) -> Option<capsule_slam_framework::depth_noise::DepthNoiseModel> {
+        self.rigid.depth_noise_in_use()
+    }
 }
 
 /// A solve's result: the tracking result with the warp, none (the rigid pose stands), or an error.
