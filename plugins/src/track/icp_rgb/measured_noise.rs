@@ -27,6 +27,7 @@
 use capsule_slam_framework::Iso3;
 use capsule_slam_framework::depth_noise::DepthNoiseModel;
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 
 use super::frames::Level;
 use crate::common::maps::{normal, vertex};
@@ -66,8 +67,8 @@ pub fn residual_image(live: &Level, reference: &Level, t_ref_live: &Iso3, gate_m
     let (rw, rh) = reference.depth.size();
     let cam = &reference.cam;
     let mut out = vec![f64::NAN; w * h];
-    for y in 0..h {
-        for x in 0..w {
+    out.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
+        for (x, e) in row.iter_mut().enumerate() {
             let (Some(v), Some(nl)) = (vertex(&live.vertices, x, y), normal(&live.normals, x, y)) else { continue };
             let s = (t_ref_live * Point3::from(v.cast::<f64>())).coords;
             if s.z <= 0.0 {
@@ -84,9 +85,9 @@ pub fn residual_image(live: &Level, reference: &Level, t_ref_live: &Iso3, gate_m
             if (s - d).norm() > gate_m || (t_ref_live.rotation * nl.cast::<f64>()).dot(&n) < cos_gate || along.abs() < MIN_COS * s.norm() {
                 continue;
             }
-            out[y * w + x] = n.dot(&(s - d)) / along;
+            *e = n.dot(&(s - d)) / along;
         }
-    }
+    });
     (w, h, out)
 }
 
@@ -107,23 +108,30 @@ pub fn measure((w, h, e): (usize, usize, &[f64])) -> Option<(f64, f64)> {
     // not set the correlation.
     let clip = |v: f64| (v - median).clamp(-4.0 * sigma, 4.0 * sigma);
     let variance = valid.iter().map(|v| clip(*v).powi(2)).sum::<f64>() / valid.len() as f64;
+    let e: Vec<f64> = e.iter().map(|v| if v.is_finite() { clip(*v) } else { f64::NAN }).collect();
     let mut previous = (0.0, 1.0);
     for &lag in LAGS_PX.iter().filter(|l| **l < w.max(h)) {
-        let (mut sum, mut n) = (0.0, 0usize);
-        for y in 0..h {
-            for x in 0..w {
-                let a = e[y * w + x];
-                if !a.is_finite() {
-                    continue;
-                }
-                for (bx, by) in [(x + lag, y), (x, y + lag)] {
-                    if bx < w && by < h && e[by * w + bx].is_finite() {
-                        sum += 0.5 * (clip(e[by * w + bx]) - clip(a)).powi(2);
-                        n += 1;
+        // Rows in parallel, summed in row order: the same sum on any number of threads.
+        let rows: Vec<(f64, usize)> = (0..h)
+            .into_par_iter()
+            .map(|y| {
+                let (mut sum, mut n) = (0.0, 0usize);
+                for x in 0..w {
+                    let a = e[y * w + x];
+                    if !a.is_finite() {
+                        continue;
+                    }
+                    for (bx, by) in [(x + lag, y), (x, y + lag)] {
+                        if bx < w && by < h && e[by * w + bx].is_finite() {
+                            sum += 0.5 * (e[by * w + bx] - a).powi(2);
+                            n += 1;
+                        }
                     }
                 }
-            }
-        }
+                (sum, n)
+            })
+            .collect();
+        let (sum, n) = rows.iter().fold((0.0, 0usize), |(s, c), (rs, rc)| (s + rs, c + rc));
         if n == 0 {
             break;
         }

@@ -183,7 +183,9 @@ impl IcpRgb {
         if depth_source != DepthSource::Measured {
             return false;
         }
+        let clock = std::time::Instant::now();
         self.observe_depth_error(live, reference, t);
+        ctx.count("ms_depth_error", clock.elapsed().as_secs_f64() * 1e3);
         let before = self.noise_in_use;
         self.weigh_by_measured_error(live, ctx);
         let again = self.noise_in_use.is_some() && self.noise_in_use != before;
