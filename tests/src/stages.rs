@@ -172,6 +172,8 @@ capsule_slam_framework::plugin_params! {
         /// Relative depth σ the tracker says it weighed every frame by
         /// (`Tracker::depth_noise_in_use`; 0: none).
         pub noise_relative: f64 = 0.0; unit = "-"; range = 0.0..=1.0;
+        /// The first frame it says so.
+        pub noise_from_frame: u32 = 0; unit = "frame"; range = 0.0..=1.0e9;
     }
 }
 
@@ -179,6 +181,8 @@ capsule_slam_framework::plugin_params! {
 /// translates the whole map by `shift_m`: a known non-rigid tracker's output, for the pipeline.
 pub struct WarpTracker {
     params: WarpTrackerParams,
+    /// The frame tracked last.
+    index: usize,
 }
 
 impl Plugin for WarpTracker {
@@ -189,12 +193,13 @@ impl Plugin for WarpTracker {
         if params.shift_m.len() != 3 {
             return Err(StageError::invalid_input("shift_m needs 3 values"));
         }
-        Ok(Self { params })
+        Ok(Self { params, index: 0 })
     }
 }
 
 impl Tracker for WarpTracker {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, _t_world_prev: &Iso3, _ctx: &mut Context) -> Result<TrackResult, StageError> {
+        self.index = frame.index;
         let pose = frame.gt_t_world_cam.ok_or_else(|| StageError::invalid_input("test-warp needs ground truth"))?;
         let mut result = TrackResult::tracked(pose);
         if model.is_some() {
@@ -207,7 +212,7 @@ impl Tracker for WarpTracker {
 
     fn depth_noise_in_use(&self) -> Option<capsule_slam_framework::depth_noise::DepthNoiseModel> {
         let relative = self.params.noise_relative;
-        (relative > 0.0).then_some(capsule_slam_framework::depth_noise::DepthNoiseModel {
+        (relative > 0.0 && self.index >= self.params.noise_from_frame as usize).then_some(capsule_slam_framework::depth_noise::DepthNoiseModel {
             absolute_m: 0.0,
             relative,
             quadratic_per_m: 0.0,

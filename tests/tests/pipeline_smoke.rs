@@ -312,16 +312,23 @@ fn the_noise_a_tracker_weighed_the_depth_by_is_the_noise_the_map_fuses_it_with()
             "pipeline.tracker=test-warp".into(),
             "plugins.test-warp.shift_m=[0.0, 0.0, 0.0]".into(),
             format!("plugins.test-warp.noise_relative={relative}"),
+            "plugins.test-warp.noise_from_frame=2".into(),
             "pipeline.fuser=surfel-cpu".into(),
             "output.map_surfels=all".into(),
         ];
         run_on(&data, &tmp.path().join(out), &Config::load(None, &sets).unwrap()).unwrap();
-        ply::read_surfels(&tmp.path().join(out).join("map.ply")).unwrap()
+        let counters: Vec<serde_json::Value> =
+            std::fs::read_to_string(tmp.path().join(out).join("counters.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        let raised_at: Vec<usize> = counters.iter().enumerate().filter(|(_, c)| c.get("surfel-cpu.surfels_sigma_raised").is_some()).map(|(i, _)| i).collect();
+        (ply::read_surfels(&tmp.path().join(out).join("map.ply")).unwrap(), raised_at)
     };
     // The fixture's plane lies 5 cm in front of every camera: a 4 % error is 2 mm, where the
-    // sensor's undeclared default is 0.1 mm. Fused from 4 frames, no surfel is sharper than
-    // 2 mm / √4; without the tracker's noise every surfel keeps the default's 0.1 mm or less.
-    let (raised, plain) = (run("0.04", "raised"), run("0", "plain"));
+    // sensor's undeclared default is 0.1 mm. The tracker says so from frame 2: the map of
+    // frames 0 and 1 is raised to it once, then frames 2 and 3 are fused with it, so no surfel
+    // is sharper than 2 mm / √4 (without raising the map, frame 0's 0.1 mm surfels would stay
+    // about that sharp); without the tracker's noise every surfel keeps 0.1 mm or less.
+    let ((raised, at), (plain, none)) = (run("0.04", "raised"), run("0", "plain"));
+    assert_eq!((at, none), (vec![2], vec![]), "the map is raised once, at the first frame that reports the noise");
     assert!(raised.len() > 100 && plain.len() > 100);
     let min_sigma = |m: &capsule_slam_framework::SurfelSet| m.surfels.iter().map(|s| s.sigma_m).fold(f32::INFINITY, f32::min);
     let max_sigma = |m: &capsule_slam_framework::SurfelSet| m.surfels.iter().map(|s| s.sigma_m).fold(0.0f32, f32::max);

@@ -190,6 +190,19 @@ pub trait Fuser: Send {
             "this fuser cannot deform its map: choose a fuser that follows a deforming wall (surfel-cpu, surfel-gpu) or a rigid tracker",
         ))
     }
+    /// Raises every surfel's σ to `noise`'s σ at its depth in the camera `t_world_cam` where
+    /// that is larger: the map fused before a tracker measured the depth to be noisier than its
+    /// σ said ([`Tracker::depth_noise_in_use`]; the pipeline calls this once, at the first
+    /// frame that reports it, before fusing that frame), so that those surfels do not outweigh
+    /// every later measurement. By default the map keeps its σ, with a warning.
+    fn raise_sigma(&mut self, noise: &crate::depth_noise::DepthNoiseModel, t_world_cam: &Iso3, ctx: &mut Context) -> Result<(), StageError> {
+        let _ = t_world_cam;
+        ctx.warn(format!(
+            "the depth is noisier than its σ said (a relative σ of {:.1} % measured), but this fuser keeps the σ its surfels were fused with: they outweigh later frames",
+            100.0 * noise.relative
+        ));
+        Ok(())
+    }
     /// Surfel counts (cheap: called every frame).
     fn stats(&self) -> MapStats;
     /// An exported copy of the whole map in canonical order (for output and tests; may be

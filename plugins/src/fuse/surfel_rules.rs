@@ -3,8 +3,9 @@
 //! using point-based fusion" (3DV), and ElasticFusion's shaders (Whelan et al. 2016, IJRR,
 //! doi:10.1177/0278364916669237), Sec. 3.
 
-use capsule_slam_framework::Surfel;
 use capsule_slam_framework::camera::PinholeCamera;
+use capsule_slam_framework::depth_noise::DepthNoiseModel;
+use capsule_slam_framework::{Iso3, Surfel};
 
 use super::surfel_params::SurfelParams;
 use nalgebra::{Point3, Vector3};
@@ -71,6 +72,15 @@ impl Measurement {
             warp_m: Vector3::zeros(),
         }
     }
+}
+
+/// Raises a surfel's σ to `noise`'s σ at its depth along the optical axis of the camera
+/// `t_cam_world` (its distance where it lies behind the camera) where that is larger
+/// ([`capsule_slam_framework::Fuser::raise_sigma`]): one rule for both fusers.
+pub fn raise_sigma(s: &mut Surfel, noise: &DepthNoiseModel, t_cam_world: &Iso3) {
+    let p = t_cam_world * s.position_m.cast::<f64>();
+    let z = if p.z > 0.0 { p.z } else { p.coords.norm() };
+    s.sigma_m = s.sigma_m.max(noise.sigma_m(z) as f32);
 }
 
 /// Fuses a measurement into a surfel (Keller et al. Eq. (4); ElasticFusion `update.vert`): if
@@ -160,6 +170,35 @@ pub fn reactivate(surfels: &mut [Surfel], t_world_cam: &capsule_slam_framework::
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn raising_a_surfels_sigma_reads_its_depth_in_the_camera_and_keeps_a_larger_one() {
+        let noise = DepthNoiseModel { absolute_m: 0.0, relative: 0.04, quadratic_per_m: 0.0, correlation_px: 0.0 };
+        // A camera 1 cm behind the world origin, looking along +z: a surfel at z = 4 cm is 5 cm deep.
+        let t_cam_world = Iso3::translation(0.0, 0.0, 0.01);
+        let at = |position_m: Point3<f32>, sigma_m: f32| Surfel {
+            position_m,
+            normal: Vector3::z(),
+            colour: [0; 3],
+            confidence: 1.0,
+            radius_m: 1e-4,
+            t0: 0,
+            t: 0,
+            albedo: 0.0,
+            sigma_m,
+            warp_m: Vector3::zeros(),
+        };
+        let mut s = at(Point3::new(0.003, 0.0, 0.04), 1e-4);
+        raise_sigma(&mut s, &noise, &t_cam_world);
+        assert!((s.sigma_m - 0.002).abs() < 1e-9, "{}", s.sigma_m);
+        s.sigma_m = 0.005;
+        raise_sigma(&mut s, &noise, &t_cam_world);
+        assert_eq!(s.sigma_m, 0.005, "a larger σ stays");
+        // Behind the camera: its distance.
+        let mut behind = at(Point3::new(0.0, 0.03, -0.05), 0.0);
+        raise_sigma(&mut behind, &noise, &t_cam_world);
+        assert!((behind.sigma_m - 0.04 * 0.05).abs() < 1e-9, "{}", behind.sigma_m);
+    }
 
     #[test]
     fn confidence_is_one_at_the_centre_and_falls_off() {

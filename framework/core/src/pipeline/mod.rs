@@ -61,6 +61,8 @@ pub struct Pipeline {
     last: Option<LastFrame>,
     /// The frame pushed last, not processed yet ([`Pipeline::push`]).
     pending: Option<Pending>,
+    /// Whether the map's σ was raised to a noise the tracker measured ([`Fuser::raise_sigma`]).
+    map_sigma_raised: bool,
 }
 
 /// The last processed frame as the stages saw it, kept for an observer (a recording of the
@@ -154,6 +156,7 @@ impl Pipeline {
             keep_last: false,
             last: None,
             pending: None,
+            map_sigma_raised: false,
         }
     }
 
@@ -281,7 +284,8 @@ impl Pipeline {
         let tr = self.track(&rgbd, &mut rec)?;
         // The noise the tracker found in this depth, where it outweighs the frame's own σ: the
         // map weighs the frame as the tracker did (`Tracker::depth_noise_in_use`).
-        if let Some(noise) = self.stages.tracker.1.depth_noise_in_use() {
+        let noise = self.stages.tracker.1.depth_noise_in_use();
+        if let Some(noise) = &noise {
             noise.raise(&rgbd.depth_m, &mut rgbd.depth_sigma_m, &mut rgbd.depth_sigma_correlation_px);
         }
         let mut pose = tr.t_world_cam;
@@ -291,6 +295,9 @@ impl Pipeline {
                 self.warp_map(rgbd.index, warp, &mut rec)?;
             }
             pose = self.close_loop(&rgbd, pose, &mut rec)?;
+            if let Some(noise) = noise.filter(|_| !self.map_sigma_raised) {
+                self.raise_map_sigma(&noise, rgbd.index, &pose, &mut rec)?;
+            }
             next = self.fuse_and_predict(&rgbd, &pose, &mut rec, next)?;
         }
         self.pending = next;
@@ -325,6 +332,19 @@ impl Pipeline {
         rec.tracker_iterations = tr.iterations;
         rec.warp_m = tr.warp.as_ref().map(|w| w.node_displacement_m());
         Ok(tr)
+    }
+
+    /// The map fused before the tracker first measured the depth noisier than its σ, raised to
+    /// that noise once ([`Fuser::raise_sigma`], timed with the fusion).
+    fn raise_map_sigma(&mut self, noise: &crate::depth_noise::DepthNoiseModel, idx: usize, pose: &Iso3, rec: &mut FrameRecord) -> Result<(), PipelineError> {
+        let t = Instant::now();
+        let (fname, fuser) = &mut self.stages.fuser;
+        fuser
+            .raise_sigma(noise, pose, &mut Context::new(idx, &self.rig, self.prediction.as_ref(), report(rec, fname)))
+            .map_err(|e| stage_err(idx, fname, e))?;
+        self.map_sigma_raised = true;
+        rec.ms.fuse += ms_since(t);
+        Ok(())
     }
 
     /// Step 4 of a non-rigid tracker: its deformation of the map, applied before anything

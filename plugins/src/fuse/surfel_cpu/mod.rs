@@ -13,6 +13,7 @@
 mod splat;
 
 use capsule_slam_framework::deformation::Deformation;
+use capsule_slam_framework::depth_noise::DepthNoiseModel;
 use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{FuseStats, LoopClosure};
@@ -21,7 +22,7 @@ use rayon::prelude::*;
 
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
-use super::surfel_rules::{Layer, Measurement, depth_gate, merge, normal_gate, reactivate, revisit_layer};
+use super::surfel_rules::{Layer, Measurement, depth_gate, merge, normal_gate, raise_sigma, reactivate, revisit_layer};
 use super::window::ActiveWindow;
 pub use splat::{IndexMap, SplatDepths, predict};
 
@@ -183,6 +184,13 @@ impl Fuser for SurfelCpu {
         self.warp_surfels(deformation, true);
         self.window.warped(ctx.frame_index as u32);
         ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
+        Ok(())
+    }
+
+    fn raise_sigma(&mut self, noise: &DepthNoiseModel, t_world_cam: &Iso3, ctx: &mut Context) -> Result<(), StageError> {
+        let t_cam_world = t_world_cam.inverse();
+        self.surfels.par_iter_mut().for_each(|s| raise_sigma(s, noise, &t_cam_world));
+        ctx.count("surfels_sigma_raised", self.surfels.len() as f64);
         Ok(())
     }
 

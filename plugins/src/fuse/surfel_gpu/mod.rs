@@ -17,6 +17,7 @@ mod kernels;
 mod layout;
 
 use capsule_slam_framework::deformation::Deformation;
+use capsule_slam_framework::depth_noise::DepthNoiseModel;
 use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::stage::{FuseStats, LoopClosure};
@@ -25,7 +26,7 @@ use rayon::prelude::*;
 
 use super::measure::measurements;
 use super::surfel_params::SurfelParams;
-use super::surfel_rules::reactivate;
+use super::surfel_rules::{raise_sigma, reactivate};
 use super::window::ActiveWindow;
 use device::{DeviceMap, Phase, gpu_error};
 use layout::GpuMeasurement;
@@ -139,6 +140,17 @@ impl Fuser for SurfelGpu {
         self.window.warped(ctx.frame_index as u32);
         self.rewrite(deformation, true, |_| {})?;
         ctx.count("ms_warp", clock.elapsed().as_secs_f64() * 1e3);
+        Ok(())
+    }
+
+    /// On a copy of the map brought back from the device and uploaded again, as `rewrite`
+    /// does: once a run.
+    fn raise_sigma(&mut self, noise: &DepthNoiseModel, t_world_cam: &Iso3, ctx: &mut Context) -> Result<(), StageError> {
+        let t_cam_world = t_world_cam.inverse();
+        let mut surfels = self.map.download()?;
+        surfels.par_iter_mut().for_each(|s| raise_sigma(s, noise, &t_cam_world));
+        self.map.upload(&surfels)?;
+        ctx.count("surfels_sigma_raised", surfels.len() as f64);
         Ok(())
     }
 

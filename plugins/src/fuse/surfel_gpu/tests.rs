@@ -347,3 +347,34 @@ fn a_trackers_warp_moves_both_maps_alike_and_nothing_else() {
         - old.iter().map(|s| f64::from(s.position_m.z)).sum::<f64>() / old.len() as f64;
     assert!(mean_dz > 1e-4, "the map moved along z: {mean_dz}");
 }
+
+#[test]
+fn raising_the_maps_sigma_gives_the_same_sigma_on_both() {
+    let gpu = GpuHandle::new();
+    if gpu.get_or_skip("raising_the_maps_sigma_gives_the_same_sigma_on_both").is_none() {
+        return;
+    }
+    let ph = phantom(2, 6, 0.0);
+    let (mut g, mut c) = builders(&ph, None, &gpu);
+    fuse_both(&ph, &mut g, &mut c, 0..6, true);
+    let noise = capsule_slam_framework::depth_noise::DepthNoiseModel { absolute_m: 0.0, relative: 0.05, quadratic_per_m: 0.0, correlation_px: 80.0 };
+    let (rig, mut r) = (rig(&ph), StageReport::default());
+    let pose = ph.pose(5);
+    for f in [&mut g as &mut dyn Fuser, &mut c] {
+        f.raise_sigma(&noise, &pose, &mut Context::new(5, &rig, None, &mut r)).unwrap();
+    }
+    let (sg, sc) = (g.snapshot().unwrap().surfels, c.snapshot().unwrap().surfels);
+    assert!(agreement(&sg, &sc) > 0.999);
+    // Every surfel now has at least 5 % of its depth in the camera of frame 5 (its distance
+    // where it lies behind it).
+    let t_cam_world = pose.inverse();
+    for s in &sc {
+        let p = t_cam_world * s.position_m.cast::<f64>();
+        let z = if p.z > 0.0 { p.z } else { p.coords.norm() };
+        assert!(f64::from(s.sigma_m) >= 0.05 * z - 1e-7, "σ {} at {z} m", s.sigma_m);
+    }
+    assert!(sc.iter().filter(|s| s.sigma_m > 1e-3).count() > sc.len() / 2, "most surfels lie centimetres away");
+    let sigma_sum = |m: &[Surfel]| m.iter().map(|s| s.sigma_m).sum::<f32>();
+    let (a, b) = (sigma_sum(&sg), sigma_sum(&sc));
+    assert!((a - b).abs() <= 1e-4 * b, "σ summed: gpu {a}, cpu {b}");
+}
