@@ -24,11 +24,13 @@
 //! phantom's declared smooth and structured-light errors, exact depth and stereo depth track
 //! to the bit as before.
 
-use capsule_slam_framework::Iso3;
 use capsule_slam_framework::depth_noise::DepthNoiseModel;
+use capsule_slam_framework::frame::DepthSource;
+use capsule_slam_framework::{Context, Iso3};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
+use super::IcpRgb;
 use super::frames::Level;
 use crate::common::maps::{normal, vertex};
 
@@ -198,6 +200,71 @@ impl MeasuredNoise {
             let model = DepthNoiseModel { correlation_px: self.correlation_px / f64::from(1u32 << l), ..self.model() };
             model.raise(&level.depth, &mut level.sigma, &mut level.sigma_correlation_px);
         }
+    }
+}
+
+impl IcpRgb {
+    /// Raises the live pyramid's σ to the depth error measured against the model (`measured_noise.rs`)
+    /// where that exceeds the frame's own by `depth_error_factor`, and says so once.
+    pub(super) fn weigh_by_measured_error(&mut self, live: &mut [Level], ctx: &mut Context) {
+        let factor = self.params.depth_error_factor;
+        let (Some(e), Some(first)) = (self.depth_error, live.first()) else { return };
+        let Some((own_m, measured_m)) = e.compare(first) else { return };
+        // What the tracker takes a residual's σ to be: the registration floor and the frame's σ.
+        let assumed_m = own_m.hypot(self.params.sigma_icp_m);
+        let raise = factor > 0.0 && measured_m > factor * assumed_m;
+        ctx.count("depth_error_rel_percent", 100.0 * e.relative);
+        ctx.count("depth_error_correlation_px", e.correlation_px);
+        ctx.count("depth_sigma_raised", f64::from(u8::from(raise)));
+        if !raise {
+            return;
+        }
+        e.apply(live);
+        self.noise_in_use = Some(e.model());
+        if !std::mem::replace(&mut self.depth_error_told, true) {
+            ctx.warn(format!(
+                "the depth is noisier than its σ says: against the model its error is {:.1} % of the depth (median {:.2} mm), correlated over {:.0} px, where the frame's σ is {:.3} mm ({:.3} mm with the registration floor sigma_icp_m); tracking and fusion weigh it by the measured error from here on (declare the sensor's depth_noise in camera.toml, docs/usage.md; depth_error_factor = 0 under the tracker's table, or [plugins.nonrigid.rigid], turns this off)",
+                100.0 * e.relative,
+                measured_m * 1e3,
+                e.correlation_px,
+                own_m * 1e3,
+                assumed_m * 1e3
+            ));
+        }
+    }
+
+    /// Measures the depth error of the frame just tracked, `live` at the pose `t_ref_live`
+    /// against `reference`, at level 1 (`measured_noise.rs`), into the running estimate.
+    fn observe_depth_error(&mut self, live: &[Level], reference: &[Level], t_ref_live: &Iso3) {
+        if self.params.depth_error_factor <= 0.0 {
+            return;
+        }
+        let (Some(l), Some(r)) = (live.get(1), reference.get(1)) else { return };
+        let (w, h, e) = residual_image(l, r, t_ref_live, self.params.icp_gate_m, self.params.icp_angle_gate_rad.cos());
+        if let Some((relative, correlation)) = measure((w, h, &e)) {
+            let m = Measured { relative, correlation_px: 2.0 * correlation };
+            self.depth_error = Some(MeasuredNoise::update(self.depth_error, m, self.params.depth_error_memory));
+        }
+    }
+
+    /// Measures the depth error of `live` (measured depth) at the pose `t` against `reference`
+    /// into the running estimate ([`IcpRgb::observe_depth_error`]); where the estimate now
+    /// outweighs the frame's σ by `depth_error_factor`, raises it
+    /// ([`IcpRgb::weigh_by_measured_error`]) and returns true: the frame is registered again.
+    pub(super) fn measure_noise(&mut self, live: &mut [Level], reference: &[Level], t: &Iso3, depth_source: DepthSource, ctx: &mut Context) -> bool {
+        if depth_source != DepthSource::Measured {
+            return false;
+        }
+        let clock = std::time::Instant::now();
+        self.observe_depth_error(live, reference, t);
+        ctx.count("ms_depth_error", clock.elapsed().as_secs_f64() * 1e3);
+        let before = self.noise_in_use;
+        self.weigh_by_measured_error(live, ctx);
+        let again = self.noise_in_use.is_some() && self.noise_in_use != before;
+        if again {
+            ctx.count("depth_error_retried", 1.0);
+        }
+        again
     }
 }
 

@@ -29,11 +29,13 @@ pub(crate) mod frames;
 mod gn;
 mod keyframe;
 mod measured_noise;
+mod options;
 pub(crate) mod register;
 mod relight;
 mod start;
 mod terms;
 
+pub use options::{Mode, MotionModel, RgbReference};
 pub use terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_sigma, rgb_jacobian};
 
 use capsule_slam_framework::depth_noise::DepthNoiseModel;
@@ -42,80 +44,10 @@ use capsule_slam_framework::light::LightModel;
 use capsule_slam_framework::registry::BuildEnv;
 use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, Plugin, RgbdFrame, StageError, TrackResult, Tracker, register};
 
-use serde::{Deserialize, Serialize};
-
 use frames::{DepthPrep, Level};
 use gn::Weights;
 use measured_noise::MeasuredNoise;
 use relight::{Lighting, Undivide, load_light};
-
-/// What the live frame is registered to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Mode {
-    /// The prediction of the fused active model (the paper), filled in by the last frame.
-    FrameToModel,
-    /// The previous live frame only (for comparison).
-    FrameToFrame,
-}
-
-/// What the photometric term compares the live image with.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum RgbReference {
-    /// The previous live frame (lit like the current one).
-    PreviousFrame,
-    /// The last keyframe, replaced as the views drift apart (`keyframe.rs`): frame-to-frame
-    /// errors stop adding up between keyframes.
-    Keyframe,
-    /// The predicted model colour (the paper).
-    Model,
-    /// The last keyframe and the previous frame at once, one photometric row against each per
-    /// live pixel: the keyframe stops the previous frame's walk, the previous frame holds where
-    /// the keyframe's longer baseline carries the depth's error into the warp (weigh that by
-    /// `rgb_flow_sigma_scale`). For depth whose error is correlated across the image
-    /// (`docs/results/depth-noise.md`, "The keyframe and the previous frame at once").
-    KeyframeAndPrevious,
-    /// `keyframe-and-previous` where the frame's depth error is correlated across pixels (its
-    /// σ declares a `correlation_px` > 0: `camera.toml`'s `depth_noise`, `stereo-sgm`'s depth)
-    /// and a light model relights the photometric term, else `previous-frame`. Such an error
-    /// cannot anchor the pose through ICP (counted once per correlated patch), so the
-    /// photometric term carries it, and against the previous frame alone it walks. Without
-    /// the relighting a capsule's moving light changes the wall's brightness across a
-    /// keyframe's baseline (about 20 % for 3 mm at 30 mm): on a fast stereo phantom without
-    /// `light.toml` the keyframe's rows took the ATE from 0.61 to 1.64 % of the path
-    /// (`docs/results/depth-noise.md`). A room lit by lamps that stay put needs no relighting:
-    /// set `keyframe-and-previous` there.
-    Auto,
-}
-
-impl RgbReference {
-    /// Whether this reference keeps a keyframe (`keyframe.rs`).
-    pub fn keeps_keyframe(self) -> bool {
-        matches!(self, Self::Keyframe | Self::KeyframeAndPrevious)
-    }
-
-    /// The reference for a frame whose depth error is correlated over `correlation_px` pixels
-    /// (0: independent from pixel to pixel), `relit` where a light model relights the
-    /// photometric term: [`RgbReference::Auto`] resolved, the others as they are.
-    pub fn for_frame(self, correlation_px: f64, relit: bool) -> Self {
-        match self {
-            Self::Auto if correlation_px > 0.0 && relit => Self::KeyframeAndPrevious,
-            Self::Auto => Self::PreviousFrame,
-            other => other,
-        }
-    }
-}
-
-/// The motion prior.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum MotionModel {
-    /// Start from the last pose.
-    None,
-    /// Start from the last pose moved by the last relative motion.
-    ConstantVelocity,
-}
 
 capsule_slam_framework::plugin_params! {
     /// Parameters of `icp-rgb`.
@@ -461,49 +393,6 @@ impl IcpRgb {
             self.weigh_by_measured_error(&mut live, ctx);
         }
         live
-    }
-
-    /// Raises the live pyramid's σ to the depth error measured against the model (`measured_noise.rs`)
-    /// where that exceeds the frame's own by `depth_error_factor`, and says so once.
-    fn weigh_by_measured_error(&mut self, live: &mut [Level], ctx: &mut Context) {
-        let factor = self.params.depth_error_factor;
-        let (Some(e), Some(first)) = (self.depth_error, live.first()) else { return };
-        let Some((own_m, measured_m)) = e.compare(first) else { return };
-        // What the tracker takes a residual's σ to be: the registration floor and the frame's σ.
-        let assumed_m = own_m.hypot(self.params.sigma_icp_m);
-        let raise = factor > 0.0 && measured_m > factor * assumed_m;
-        ctx.count("depth_error_rel_percent", 100.0 * e.relative);
-        ctx.count("depth_error_correlation_px", e.correlation_px);
-        ctx.count("depth_sigma_raised", f64::from(u8::from(raise)));
-        if !raise {
-            return;
-        }
-        e.apply(live);
-        self.noise_in_use = Some(e.model());
-        if !std::mem::replace(&mut self.depth_error_told, true) {
-            ctx.warn(format!(
-                "the depth is noisier than its σ says: against the model its error is {:.1} % of the depth (median {:.2} mm), correlated over {:.0} px, where the frame's σ is {:.3} mm ({:.3} mm with the registration floor sigma_icp_m); tracking and fusion weigh it by the measured error from here on (declare the sensor's depth_noise in camera.toml, docs/usage.md; depth_error_factor = 0 under the tracker's table, or [plugins.nonrigid.rigid], turns this off)",
-                100.0 * e.relative,
-                measured_m * 1e3,
-                e.correlation_px,
-                own_m * 1e3,
-                assumed_m * 1e3
-            ));
-        }
-    }
-
-    /// Measures the depth error of the frame just tracked, `live` at the pose `t_ref_live`
-    /// against `reference`, at level 1 (`measured_noise.rs`), into the running estimate.
-    pub(crate) fn observe_depth_error(&mut self, live: &[Level], reference: &[Level], t_ref_live: &Iso3) {
-        if self.params.depth_error_factor <= 0.0 {
-            return;
-        }
-        let (Some(l), Some(r)) = (live.get(1), reference.get(1)) else { return };
-        let (w, h, e) = measured_noise::residual_image(l, r, t_ref_live, self.params.icp_gate_m, self.params.icp_angle_gate_rad.cos());
-        if let Some((relative, correlation)) = measured_noise::measure((w, h, &e)) {
-            let m = measured_noise::Measured { relative, correlation_px: 2.0 * correlation };
-            self.depth_error = Some(MeasuredNoise::update(self.depth_error, m, self.params.depth_error_memory));
-        }
     }
 
     fn build_live_pyramid(&mut self, frame: &RgbdFrame, ctx: &mut Context) -> Vec<Level> {

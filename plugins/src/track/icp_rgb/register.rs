@@ -58,6 +58,16 @@ pub(crate) enum Stop {
     Coarse { lowest: usize },
 }
 
+impl Stop {
+    /// The stop with its lowest coarse level within the pyramid's coarse levels (1 or 2).
+    fn within_levels(self) -> Self {
+        match self {
+            Self::Coarse { lowest } => Self::Coarse { lowest: lowest.clamp(1, LEVELS - 1) },
+            fine => fine,
+        }
+    }
+}
+
 /// The pose reached so far, the iterations run, and on the current level how many ran and
 /// whether it has ended (converged, or no step); the last level-0 system.
 #[derive(Clone, Copy)]
@@ -87,21 +97,13 @@ impl IcpRgb {
         stop: Stop,
         ctx: &mut Context,
     ) -> Result<(TrackResult, Option<f64>), StageError> {
-        let stop = match stop {
-            Stop::Coarse { lowest } => Stop::Coarse { lowest: lowest.clamp(1, LEVELS - 1) },
-            fine => fine,
-        };
+        let stop = stop.within_levels();
         self.unfinished = None;
-        let cam = ctx.rig.camera();
-        let prep = self.params.depth_prep();
         let prior = match self.params.motion_model {
             MotionModel::ConstantVelocity => self.velocity.unwrap_or_else(Iso3::identity),
             MotionModel::None => Iso3::identity(),
         };
-        let model = if self.params.mode == Mode::FrameToModel { model } else { None };
-        let clock = std::time::Instant::now();
-        let reference = frames::reference(model, self.previous.as_ref().and_then(|p| p.first()), cam, LEVELS, &prep);
-        ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
+        let reference = self.reference_pyramid(model, ctx);
         let clock = std::time::Instant::now();
         let Some(reference) = reference else {
             let keyframe = self.depth_noise(depth_source, live.first().map_or(0.0, |l| l.sigma_correlation_px)).rgb_reference.keeps_keyframe();
@@ -138,19 +140,9 @@ impl IcpRgb {
                     ctx.count("ms_gauss_newton", clock.elapsed().as_secs_f64() * 1e3);
                     let (velocity, keyframe) = (self.velocity, self.keyframe.clone());
                     let (result, before) = self.conclude(live, (run.t, run.iterations, fin), &prior, &noise, t_world_prev, ctx);
-                    let t_world_prev = *t_world_prev;
-                    self.unfinished = Some(Box::new(Unfinished {
-                        reference,
-                        before,
-                        velocity,
-                        keyframe,
-                        albedo,
-                        prior,
-                        run: resume,
-                        resume_level,
-                        t_world_prev,
-                        depth_source,
-                    }));
+                    let (run, t_world_prev) = (resume, *t_world_prev);
+                    let u = Unfinished { reference, before, velocity, keyframe, albedo, prior, run, resume_level, t_world_prev, depth_source };
+                    self.unfinished = Some(Box::new(u));
                     return Ok((result, initial));
                 }
                 // Lost there: finished now, as the uninterrupted registration.
@@ -175,24 +167,15 @@ impl IcpRgb {
         }
     }
 
-    /// Measures the depth error of `live` (measured depth) at the pose `t` against `reference`
-    /// into the running estimate ([`IcpRgb::observe_depth_error`]); where the estimate now
-    /// outweighs the frame's σ by `depth_error_factor`, raises it
-    /// ([`IcpRgb::weigh_by_measured_error`]) and returns true: the frame is registered again.
-    fn measure_noise(&mut self, live: &mut [Level], reference: &[Level], t: &Iso3, depth_source: DepthSource, ctx: &mut Context) -> bool {
-        if depth_source != DepthSource::Measured {
-            return false;
-        }
+    /// The reference pyramid (`frames::reference`): the model's prediction in frame-to-model
+    /// mode, filled in by the previous frame; none where neither shows anything.
+    fn reference_pyramid(&self, model: Option<&ModelView>, ctx: &mut Context) -> Option<Vec<Level>> {
         let clock = std::time::Instant::now();
-        self.observe_depth_error(live, reference, t);
-        ctx.count("ms_depth_error", clock.elapsed().as_secs_f64() * 1e3);
-        let before = self.noise_in_use;
-        self.weigh_by_measured_error(live, ctx);
-        let again = self.noise_in_use.is_some() && self.noise_in_use != before;
-        if again {
-            ctx.count("depth_error_retried", 1.0);
-        }
-        again
+        let model = if self.params.mode == Mode::FrameToModel { model } else { None };
+        let previous = self.previous.as_ref().and_then(|p| p.first());
+        let reference = frames::reference(model, previous, ctx.rig.camera(), LEVELS, &self.params.depth_prep());
+        ctx.count("ms_reference_pyramid", clock.elapsed().as_secs_f64() * 1e3);
+        reference
     }
 
     /// Runs the rest of the registration [`IcpRgb::register_pyramid`] stopped short of
