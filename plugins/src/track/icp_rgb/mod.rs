@@ -57,7 +57,8 @@ capsule_slam_framework::plugin_params! {
         /// `constant-velocity` or `none`.
         pub motion_model: MotionModel = MotionModel::ConstantVelocity; unit = "-";
         /// Photometric reference for measured depth: `auto` (`keyframe-and-previous` where the
-        /// depth's error is correlated across pixels, else `previous-frame`), `previous-frame`
+        /// depth's error is correlated across pixels and a light model relights the term, else
+        /// `previous-frame`; `RgbReference::Auto`), `previous-frame`
         /// (robust to the moving light), `keyframe` (the last keyframe, `keyframe.rs`),
         /// `keyframe-and-previous` or `model`. With the 5 % smooth depth error
         /// `keyframe-and-previous` tracked presets 1, 4, 5 to 0.147 / 0.137 / 0.091 % against
@@ -263,21 +264,7 @@ impl Plugin for IcpRgb {
 
     fn build(params: IcpRgbParams, env: &BuildEnv) -> Result<Self, StageError> {
         crate::common::ordered("min_depth_m", f64::from(params.min_depth_m), "max_depth_m", f64::from(params.max_depth_m))?;
-        let (light, missing) = load_light(&params.light_file, env)?;
-        Ok(Self {
-            params,
-            previous: None,
-            velocity: None,
-            light,
-            missing,
-            undivide: None,
-            keyframe: None,
-            unfinished: None,
-            ahead: None,
-            depth_error: None,
-            depth_error_told: false,
-            noise_in_use: None,
-        })
+        Self::with_env(params, env)
     }
 }
 
