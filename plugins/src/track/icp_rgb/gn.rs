@@ -190,13 +190,16 @@ pub fn accumulate(inp: &Inputs<'_>, t_ref_live: &Iso3, w: &Weights) -> System {
     let (lw, lh) = inp.live.depth.size();
     let stride = inp.stride.max(1);
     let correlated = correlated_count(inp.live.sigma_correlation_px, stride as f64);
+    // The photometric references' cameras ← the live camera, once per system.
+    let photo_live = |t_photo_ref: Option<Iso3>| t_photo_ref.map_or(*t_ref_live, |t| t * t_ref_live);
+    let t_photo_live = [photo_live(inp.t_photo_ref), photo_live(inp.second.and_then(|(_, t)| t))];
     let rows: Vec<System> = (0..lh)
         .into_par_iter()
         .step_by(stride)
         .map(|y| {
             let mut sys = System::zero();
             for x in (0..lw).step_by(stride) {
-                pixel(inp, (x, y), t_ref_live, (w, correlated), &mut sys);
+                pixel(inp, (x, y), (t_ref_live, &t_photo_live), (w, correlated), &mut sys);
             }
             sys
         })
@@ -208,8 +211,9 @@ pub fn accumulate(inp: &Inputs<'_>, t_ref_live: &Iso3, w: &Weights) -> System {
     total
 }
 
-/// The ICP and photometric rows of live pixel `(x, y)`.
-fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correlated): (&Weights, f64), sys: &mut System) {
+/// The ICP and photometric rows of live pixel `(x, y)`; `t_photo_live` the photometric
+/// references' cameras ← the live camera (the second's for `inp.second`).
+fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), (t_ref_live, t_photo_live): (&Iso3, &[Iso3; 2]), (w, correlated): (&Weights, f64), sys: &mut System) {
     let (live, reference, cam) = (inp.live, inp.reference, &inp.reference.cam);
     let Some(v) = vertex(&live.vertices, x, y) else { return };
     let s = (t_ref_live * nalgebra::Point3::from(v.cast::<f64>())).coords;
@@ -260,21 +264,27 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), t_ref_live: &Iso3, (w, correl
     // A point moved by λ along the ray: the light's fall-off (∝ 1/distance², the light beside the
     // lens) makes its albedo λ² the live one's. Projected again; the Jacobian holds λ fixed.
     // The warped depth's relative σ: the live depth's, or that of its blend with the model's.
-    let sigma_warp = match blended {
-        Some(_) if sigma_live > 0.0 && sigma_ref > 0.0 => sigma_live * sigma_ref / (sigma_live * sigma_live + sigma_ref * sigma_ref).sqrt(),
-        _ => sigma_live,
+    // (Read only by the flow term, `rgb_flow_sigma_scale` > 0.)
+    let sigma_rel = if w.rgb_flow_sigma_scale > 0.0 {
+        let sigma_warp = match blended {
+            Some(_) if sigma_live > 0.0 && sigma_ref > 0.0 => sigma_live * sigma_ref / (sigma_live * sigma_live + sigma_ref * sigma_ref).sqrt(),
+            _ => sigma_live,
+        };
+        sigma_warp / f64::from(v.z)
+    } else {
+        0.0
     };
-    let sigma_rel = sigma_warp / f64::from(v.z);
     let point = blended.unwrap_or((s, 1.0));
-    photometric_row(inp, (x, y), point, t_ref_live, (w, sigma_live, sigma_rel), sys);
+    photometric_row(inp, (x, y), point, &t_photo_live[0], (w, sigma_live, sigma_rel), sys);
     if let Some((photo, t_photo_ref)) = inp.second {
-        photometric_row(&Inputs { photo, t_photo_ref, second: None, ..*inp }, (x, y), point, t_ref_live, (w, sigma_live, sigma_rel), sys);
+        photometric_row(&Inputs { photo, t_photo_ref, second: None, ..*inp }, (x, y), point, &t_photo_live[1], (w, sigma_live, sigma_rel), sys);
     }
 }
 
 /// The photometric row of live pixel `(x, y)` whose point `s` (reference frame; moved by `λ`
 /// along its ray where blended) is sampled and relit in the photometric reference: in the
-/// reference camera, or carried into a keyframe's by `inp.t_photo_ref`. Against a keyframe the
+/// reference camera, or carried into a keyframe's by `inp.t_photo_ref` (`t_photo_live`: the
+/// photometric reference's camera ← the live camera). Against a keyframe the
 /// row is its projected gradient brought back to the reference frame, `a_ref = R_photo_refᵀ
 /// a_photo`, so that the increment stays the one on `t_ref_live` (a fixed transform composed on
 /// the left).
@@ -282,7 +292,7 @@ fn photometric_row(
     inp: &Inputs<'_>,
     (x, y): (usize, usize),
     (s, lambda): (Vector3<f64>, f64),
-    t_ref_live: &Iso3,
+    t_photo_live: &Iso3,
     (w, sigma_live, sigma_rel): (&Weights, f64, f64),
     sys: &mut System,
 ) {
@@ -303,9 +313,8 @@ fn photometric_row(
     let predicted = match inp.light {
         None => f64::from(live.gray.at(x, y)),
         Some((l, albedo)) => {
-            let t_photo_live = inp.t_photo_ref.map_or(*t_ref_live, |t| t * t_ref_live);
             let lit =
-                normal(&live.normals, x, y).and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, &t_photo_live, (uf, vf), &p));
+                normal(&live.normals, x, y).and_then(|nl| l.relit(&live.cam, albedo.at(x, y) * (lambda * lambda) as f32, &nl, t_photo_live, (uf, vf), &p));
             match lit {
                 Some(i) => i,
                 None => return,
@@ -317,16 +326,12 @@ fn photometric_row(
     let j = twist_row(&s, &inp.t_photo_ref.map_or(a, |t| t.rotation.inverse() * a));
     // A pixel resampled from fewer source pixels (an undistortion's stretched ring) shares its
     // noise and interpolation error with its neighbours: counted once (`Level::share`).
-    let (sigma, var) = photometric_sigma(w, a.dot(&t_photo_live_translation(inp, t_ref_live)) * sigma_rel);
+    let flow = if w.rgb_flow_sigma_scale > 0.0 { a.dot(&t_photo_live.translation.vector) * sigma_rel } else { 0.0 };
+    let (sigma, var) = photometric_sigma(w, flow);
     let wt = live.share_at(x, y) * w.w_rgb * huber(r / sigma, w.huber_k) / var;
     sys.add_row(&j, r, wt);
     sys.rgb_n += 1;
     sys.rgb_sse += r * r;
-}
-
-/// The translation of the photometric reference's camera ← the live camera.
-fn t_photo_live_translation(inp: &Inputs<'_>, t_ref_live: &Iso3) -> Vector3<f64> {
-    inp.t_photo_ref.map_or(*t_ref_live, |t| t * t_ref_live).translation.vector
 }
 
 /// σ and σ² of a photometric residual whose depth-carried intensity error is `flow_sigma`

@@ -38,6 +38,8 @@ use crate::common::maps::{normal, vertex};
 const LAGS_PX: [usize; 6] = [1, 2, 4, 8, 16, 32];
 /// Fewest residuals a frame must give to be measured.
 const MIN_SAMPLES: usize = 500;
+/// Every how many pixels and rows [`MeasuredNoise::compare`] reads the frame.
+const COMPARE_STEP: usize = 4;
 /// Least obliquity kept, `|nᵀs| / |s|`: at grazing incidence a depth error hardly moves the
 /// residual, and ε would divide by almost nothing.
 const MIN_COS: f64 = 0.5;
@@ -175,21 +177,27 @@ impl MeasuredNoise {
     }
 
     /// The frame's own σ, the median of `level`'s (level 0's) σ over its pixels with depth, and
-    /// the σ this estimate gives them, the median of `relative · depth`: none where the level
-    /// carries no σ (estimated depth keeps its own scale).
+    /// the σ this estimate gives them, the median of `relative · depth` (`relative` times the
+    /// median depth: the same pixel's), over every [`COMPARE_STEP`]-th pixel of every
+    /// `COMPARE_STEP`-th row (a median needs no more, and this runs twice a frame): none where
+    /// the level carries no σ (estimated depth keeps its own scale).
     pub fn compare(&self, level: &Level) -> Option<(f64, f64)> {
         let sigma = level.sigma.as_ref()?;
-        let (mut own, mut ours) = (Vec::new(), Vec::new());
-        for (d, s) in level.depth.data().iter().zip(sigma.data()) {
-            if *d > 0.0 {
-                own.push(f64::from(*s));
-                ours.push(self.model().sigma_m(f64::from(*d)));
+        let (w, h) = level.depth.size();
+        let (mut own, mut depth) = (Vec::new(), Vec::new());
+        for y in (0..h).step_by(COMPARE_STEP) {
+            for x in (0..w).step_by(COMPARE_STEP) {
+                let d = level.depth.at(x, y);
+                if d > 0.0 {
+                    own.push(f64::from(sigma.at(x, y)));
+                    depth.push(f64::from(d));
+                }
             }
         }
         if own.is_empty() {
             return None;
         }
-        Some((median(&mut own), median(&mut ours)))
+        Some((median(&mut own), self.model().sigma_m(median(&mut depth))))
     }
 
     /// Raises every level's σ to `relative · depth` where that is larger, and its correlation

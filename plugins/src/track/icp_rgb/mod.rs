@@ -46,7 +46,6 @@ use capsule_slam_framework::{Context, GrayF32, Iso3, ModelView, Plugin, RgbdFram
 
 use frames::{DepthPrep, Level};
 use gn::Weights;
-use measured_noise::MeasuredNoise;
 use relight::{Lighting, Undivide, load_light};
 
 capsule_slam_framework::plugin_params! {
@@ -242,7 +241,7 @@ pub struct IcpRgb {
     ahead: Option<(usize, Vec<Level>)>,
     /// The live depth's error as measured against the model (`measured_noise.rs`), and whether the
     /// warning that it outweighs the frames' own σ was given.
-    depth_error: Option<MeasuredNoise>,
+    depth_error: Option<measured_noise::MeasuredNoise>,
     depth_error_told: bool,
     /// The measured noise the current frame is weighed by, where it raised the frame's σ.
     noise_in_use: Option<DepthNoiseModel>,
