@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::frames::Level;
 use super::relight::Relighter;
-use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, projected_gradient, residual_sigma, twist_row};
+use super::terms::{correlated_count, huber, icp_jacobian, icp_residual, nearest_pixel, projected_gradient, residual_sigma, twist_row};
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
 use capsule_slam_framework::GrayF32;
@@ -220,11 +220,8 @@ fn pixel(inp: &Inputs<'_>, (x, y): (usize, usize), (t_ref_live, t_photo_live): (
     if s.z <= 0.0 {
         return;
     }
-    let (rw, rh) = reference.depth.size();
-    let (uf, vf) = (cam.fx * s.x / s.z + cam.cx, cam.fy * s.y / s.z + cam.cy);
-    // Nearest pixel; truncation after +0.5 rounds non-negative values without libm.
-    let inside = uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh;
-    let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+    let near = nearest_pixel(cam, &s, reference.depth.size());
+    let (inside, (ui, vi)) = (near.is_some(), near.map_or((0, 0), |(_, p)| p));
     // The residual's σ: the registration floor, the live depth's own σ and the reference's (the
     // model's, fused per surfel); its weight counts a correlated block of live residuals as one
     // (`correlated`).
@@ -302,12 +299,7 @@ fn photometric_row(
     if p.z <= 0.0 {
         return;
     }
-    let (pw, ph) = photo.depth.size();
-    let (uf, vf) = (cam.fx * p.x / p.z + cam.cx, cam.fy * p.y / p.z + cam.cy);
-    if !(uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < pw && ((vf + 0.5) as usize) < ph) {
-        return;
-    }
-    let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+    let Some(((uf, vf), (ui, vi))) = nearest_pixel(cam, &p, photo.depth.size()) else { return };
     let gate_m = w.rgb_depth_gate_m.max(w.gate_sigmas * sigma_live);
     let Some((ir, gx, gy)) = reference_sample(photo, (ui, vi), (uf, vf), p.z, gate_m, w.rgb_min_gradient) else { return };
     let predicted = match inp.light {

@@ -32,6 +32,7 @@ use rayon::prelude::*;
 
 use super::IcpRgb;
 use super::frames::Level;
+use super::terms::nearest_pixel;
 use crate::common::maps::{normal, vertex};
 
 /// Lags of the variogram, pixels of the level measured.
@@ -68,8 +69,7 @@ pub struct MeasuredNoise {
 /// `cos_gate`.
 pub fn residual_image(live: &Level, reference: &Level, t_ref_live: &Iso3, gate_m: f64, cos_gate: f64) -> (usize, usize, Vec<f64>) {
     let (w, h) = live.depth.size();
-    let (rw, rh) = reference.depth.size();
-    let cam = &reference.cam;
+    let (cam, size) = (&reference.cam, reference.depth.size());
     let mut out = vec![f64::NAN; w * h];
     out.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
         for (x, e) in row.iter_mut().enumerate() {
@@ -78,11 +78,7 @@ pub fn residual_image(live: &Level, reference: &Level, t_ref_live: &Iso3, gate_m
             if s.z <= 0.0 {
                 continue;
             }
-            let (uf, vf) = (cam.fx * s.x / s.z + cam.cx, cam.fy * s.y / s.z + cam.cy);
-            if !(uf >= -0.5 && vf >= -0.5 && ((uf + 0.5) as usize) < rw && ((vf + 0.5) as usize) < rh) {
-                continue;
-            }
-            let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+            let Some((_, (ui, vi))) = nearest_pixel(cam, &s, size) else { continue };
             let (Some(d), Some(n)) = (vertex(&reference.vertices, ui, vi), normal(&reference.normals, ui, vi)) else { continue };
             let (d, n): (Vector3<f64>, Vector3<f64>) = (d.cast(), n.cast());
             let along = n.dot(&s);

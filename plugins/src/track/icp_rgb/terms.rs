@@ -3,6 +3,7 @@
 //! `v` is a live vertex (current camera frame) and `s = T v` its position in the reference
 //! (previous camera) frame.
 
+use capsule_slam_framework::PinholeCamera;
 use nalgebra::{Vector3, Vector6};
 
 /// Point-to-plane residual, Eq. (2): `r = n · (s − d)`, reference point d with normal n.
@@ -50,6 +51,16 @@ pub fn correlated_count(correlation_px: f64, spacing_px: f64) -> f64 {
     (correlation_px / spacing_px).max(1.0).powi(2)
 }
 
+/// The projection `(u, v)` of the point `p` (camera frame, `z > 0`) by `cam` and its nearest
+/// pixel of a `w × h` image, none outside it. Truncation after +0.5 rounds non-negative values
+/// without libm.
+#[inline]
+pub fn nearest_pixel(cam: &PinholeCamera, p: &Vector3<f64>, (w, h): (usize, usize)) -> Option<((f64, f64), (usize, usize))> {
+    let (uf, vf) = (cam.fx * p.x / p.z + cam.cx, cam.fy * p.y / p.z + cam.cy);
+    let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
+    (uf >= -0.5 && vf >= -0.5 && ui < w && vi < h).then_some(((uf, vf), (ui, vi)))
+}
+
 /// Huber weight of a normalised residual `e` (1 inside ±k, k/|e| outside).
 pub fn huber(e: f64, k: f64) -> f64 {
     if e.abs() <= k { 1.0 } else { k / e.abs() }
@@ -59,6 +70,20 @@ pub fn huber(e: f64, k: f64) -> f64 {
 mod tests {
     use super::*;
     use capsule_slam_framework::geometry::exp_se3;
+
+    #[test]
+    fn the_nearest_pixel_rounds_and_stays_inside_the_image() {
+        let cam = PinholeCamera::new(4, 3, 10.0, 10.0, 1.5, 1.0);
+        let at = |x: f64, y: f64| nearest_pixel(&cam, &Vector3::new(x, y, 1.0), (4, 3)).map(|(_, p)| p);
+        assert_eq!(at(0.0, 0.0), Some((2, 1)), "(1.5, 1.0) rounds to (2, 1)");
+        assert_eq!(at(-0.19, -0.14), Some((0, 0)), "(−0.4, −0.4) is still pixel 0");
+        assert_eq!(at(-0.21, 0.0), None, "u = −0.6");
+        assert_eq!(at(0.19, 0.0), Some((3, 1)), "u = 3.4 rounds to the last column");
+        assert_eq!(at(0.21, 0.0), None, "u = 3.6 rounds past it");
+        assert_eq!(at(f64::NAN, 0.0), None);
+        let ((u, v), _) = nearest_pixel(&cam, &Vector3::new(0.02, -0.03, 0.5), (4, 3)).unwrap();
+        assert!((u - 1.9).abs() < 1e-12 && (v - 0.4).abs() < 1e-12);
+    }
     use nalgebra::Point3;
 
     fn numeric(f: impl Fn(&Vector6<f64>) -> f64) -> Vector6<f64> {
