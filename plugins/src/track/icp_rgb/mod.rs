@@ -33,7 +33,7 @@ mod options;
 pub(crate) mod register;
 mod relight;
 mod start;
-mod terms;
+pub(crate) mod terms;
 
 pub use options::{Mode, MotionModel, RgbReference};
 pub use terms::{correlated_count, huber, icp_jacobian, icp_residual, residual_sigma, rgb_jacobian};

@@ -70,6 +70,7 @@ pub fn huber(e: f64, k: f64) -> f64 {
 mod tests {
     use super::*;
     use capsule_slam_framework::geometry::exp_se3;
+    use nalgebra::Point3;
 
     #[test]
     fn the_nearest_pixel_rounds_and_stays_inside_the_image() {
@@ -84,7 +85,6 @@ mod tests {
         let ((u, v), _) = nearest_pixel(&cam, &Vector3::new(0.02, -0.03, 0.5), (4, 3)).unwrap();
         assert!((u - 1.9).abs() < 1e-12 && (v - 0.4).abs() < 1e-12);
     }
-    use nalgebra::Point3;
 
     fn numeric(f: impl Fn(&Vector6<f64>) -> f64) -> Vector6<f64> {
         let h = 1e-7;

@@ -14,6 +14,7 @@ use rayon::prelude::*;
 use crate::common::maps::{normal, vertex};
 use crate::common::pyramid::Bilinear;
 use crate::track::icp_rgb::frames::Level;
+use crate::track::icp_rgb::terms::nearest_pixel;
 
 /// One model point.
 #[derive(Debug, Clone, Copy)]
@@ -167,16 +168,8 @@ pub fn look(level: &Level, t_world_cam: &Iso3, x_world: &Point3<f64>) -> Option<
     if q.z <= 0.0 {
         return None;
     }
-    let cam = &level.cam;
     let (w, h) = level.depth.size();
-    let (uf, vf) = (cam.fx * q.x / q.z + cam.cx, cam.fy * q.y / q.z + cam.cy);
-    if !(uf >= -0.5 && vf >= -0.5 && uf.is_finite() && vf.is_finite()) {
-        return None;
-    }
-    let (ui, vi) = ((uf + 0.5) as usize, (vf + 0.5) as usize);
-    if ui >= w || vi >= h {
-        return None;
-    }
+    let ((uf, vf), (ui, vi)) = nearest_pixel(&level.cam, &q, (w, h))?;
     let d = vertex(&level.vertices, ui, vi)?;
     let n = normal(&level.normals, ui, vi)?;
     let gray = Bilinear::at(w, h, uf, vf)
