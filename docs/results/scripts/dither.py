@@ -4,8 +4,8 @@
 Each colour value gets uniform noise in [-A, A] gray levels (default A = 1) and is rounded back to
 8 bits; with A = 1 about a third of the values move by one level. Everything else (depth, ground
 truth, camera.toml, light.toml) is copied unchanged. Used to measure how much a run's ATE moves
-under a perturbation far below the phantom's own sensor noise (about 3 gray levels), i.e. the
-spread a single run's figure carries (docs/results/camera-models.md).
+under a perturbation far below the phantom's own sensor noise (about 2.6 gray levels), and so
+found the black border's bug (docs/results/camera-models.md, "The black border").
 
     python3 dither.py SRC DST --seed S [--amplitude A]
 """

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Resample a 640x640 equidistant render into the 320x320 pinhole camera by area sampling.
 
-A one-off diagnostic of docs/results/camera-models.md ("How far one run's figure moves"): the
+A one-off diagnostic of docs/results/camera-models.md ("The black border"): the
 fisheye phantom rendered at twice the resolution (f = 320 px, centre 319.5) is brought into the
 pinhole camera of the 320 phantom (f = 160 px, centre 159.5). Each target pixel is the mean of
 4x4 bilinear taps spread over its area, each tap's ray sent through OpenCV's equidistant model

@@ -2,7 +2,7 @@
 //! prediction, filled in with the previous live frame where the model has nothing).
 
 use capsule_slam_framework::camera::PinholeCamera;
-use capsule_slam_framework::frame::{MASK_SPECULAR, ShareMap};
+use capsule_slam_framework::frame::{MASK_OUT_OF_VIEW, MASK_SPECULAR, ShareMap};
 use capsule_slam_framework::image::gray_from_rgb;
 use capsule_slam_framework::{DepthMap, GrayF32, ModelView, RgbdFrame};
 
@@ -115,7 +115,11 @@ pub fn pyramid(
 /// preprocessor divided out multiplied back in, `relight::Undivide`). The intensity is 0
 /// (no photometric residual) within `rgb_margin_px` of a detected highlight (the frame's
 /// [`MASK_SPECULAR`]): the highlight's tail beyond its detected core brightens the wall by a
-/// view-dependent amount that brightness constancy cannot explain.
+/// view-dependent amount that brightness constancy cannot explain. It is 0 too wherever the
+/// frame sees nothing ([`MASK_OUT_OF_VIEW`]: beyond the round field of view, or beyond what an
+/// undistortion map reaches): a real sensor's black there is noise, not 0, and 0 is the mark of
+/// "no intensity" that the photometric terms and the model points' references test
+/// (`docs/results/camera-models.md`, "How far one run's figure moves").
 pub fn live(
     frame: &RgbdFrame,
     cam: &PinholeCamera,
@@ -141,6 +145,9 @@ pub fn live(
     if let Some(highlights) = frame.masks.get(MASK_SPECULAR).filter(|_| rgb_margin_px > 0) {
         let margin = dilate(highlights, rgb_margin_px, None);
         gray.data_mut().iter_mut().zip(margin.data()).filter(|(_, m)| **m).for_each(|(g, _)| *g = 0.0);
+    }
+    if let Some(unseen) = frame.masks.get(MASK_OUT_OF_VIEW) {
+        gray.data_mut().par_iter_mut().zip(unseen.data().par_iter()).filter(|(_, m)| **m).for_each(|(g, _)| *g = 0.0);
     }
     let mut out = pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep);
     if let Some(sigma) = &frame.depth_sigma_m {

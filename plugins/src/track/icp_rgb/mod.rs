@@ -437,3 +437,5 @@ register!(Tracker, IcpRgb);
 mod tests;
 #[cfg(test)]
 mod tests_references;
+#[cfg(test)]
+mod tests_unseen;
