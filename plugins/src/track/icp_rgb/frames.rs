@@ -119,7 +119,7 @@ pub fn pyramid(
 /// frame sees nothing ([`MASK_OUT_OF_VIEW`]: beyond the round field of view, or beyond what an
 /// undistortion map reaches): a real sensor's black there is noise, not 0, and 0 is the mark of
 /// "no intensity" that the photometric terms and the model points' references test
-/// (`docs/results/camera-models.md`, "How far one run's figure moves").
+/// (`docs/results/camera-models.md`, "The black border").
 pub fn live(
     frame: &RgbdFrame,
     cam: &PinholeCamera,
