@@ -136,8 +136,8 @@ fn sweep(c: &[u16], (w, h, n): (usize, usize, usize), dirs: &[(isize, isize)], s
         }
         // Back to pixel-major, added to what the path along the row left there.
         for (k, from) in sums_kx.chunks_exact(w.max(1)).enumerate() {
-            for (t, v) in sums.iter_mut().skip(k).step_by(n.max(1)).zip(from) {
-                *t = t.saturating_add(*v);
+            for (cell, v) in sums.chunks_exact_mut(n.max(1)).zip(from) {
+                cell[k] = cell[k].saturating_add(*v);
             }
         }
         std::mem::swap(&mut prev, &mut row);
@@ -149,8 +149,8 @@ fn sweep(c: &[u16], (w, h, n): (usize, usize, usize), dirs: &[(isize, isize)], s
 /// (`k * w + x`).
 fn transpose(src: &[u16], dst: &mut [u16], w: usize, n: usize) {
     for (k, to) in dst.chunks_exact_mut(w.max(1)).take(n).enumerate() {
-        for (d, v) in to.iter_mut().zip(src.iter().skip(k).step_by(n.max(1))) {
-            *d = *v;
+        for (d, cell) in to.iter_mut().zip(src.chunks_exact(n.max(1))) {
+            *d = cell[k];
         }
     }
 }

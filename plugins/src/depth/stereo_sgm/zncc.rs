@@ -34,60 +34,52 @@ pub struct Plane {
     pub height: usize,
 }
 
-/// The window sums of one disparity plane, row by row: running sums along each row of the six
-/// channels (count, Σl, Σl², Σr, Σr², Σlr of the jointly usable pixels, `channels(p)`), then
-/// running sums of those rows down the image (f64 accumulators, so that adding and removing
-/// along 320 steps does not drift), each finished row of sums handed to `emit(y, sums)`,
-/// channel-major (channel c of pixel x at `sums[c * w + x]`).
-///
-/// The row sums live in a ring of `2r + 2` rows (all the vertical window needs: the row entering
-/// and the row leaving), channel-major within a row so that the vertical update runs over
-/// contiguous values; `scratch` keeps the buffers between calls.
-fn window_sums(w: usize, h: usize, r: usize, channels: impl Fn(usize) -> [f32; 6], scratch: &mut Scratch, mut emit: impl FnMut(usize, &[f64])) {
-    let ring = 2 * r + 2;
-    let Scratch { row_in, rows, vertical } = scratch;
+/// The window sums of one disparity plane, row by row: the six channels (count, Σl, Σl², Σr,
+/// Σr², Σlr of the jointly usable pixels, written per pixel by `fill(y, row)`) summed down the
+/// window's rows into column sums (kept from row to row: the row entering added, the row
+/// leaving, filled again, taken away), then along each row through prefix sums, each finished
+/// row of sums handed to `emit(y, sums)`. Sums are f64, so that adding and removing along 320
+/// steps does not drift; `scratch` keeps the buffers between calls.
+fn window_sums(w: usize, h: usize, r: usize, fill: impl Fn(usize, &mut [[f32; 6]]), scratch: &mut Scratch, mut emit: impl FnMut(usize, &[[f64; 6]])) {
+    let Scratch { row_in, columns, prefix, sums } = scratch;
     row_in.clear();
     row_in.resize(w, [0.0; 6]);
-    rows.clear();
-    rows.resize(ring * 6 * w, 0.0);
-    vertical.clear();
-    vertical.resize(6 * w, 0.0);
-    // Row `y`'s horizontal sums into its ring slot, channel c at [c * w..(c + 1) * w].
-    let horizontal = |y: usize, row_in: &mut [[f32; 6]], rows: &mut [f32]| {
-        row_in.iter_mut().enumerate().for_each(|(x, c)| *c = channels(y * w + x));
-        let slot = &mut rows[(y % ring) * 6 * w..][..6 * w];
-        let mut s = [0f64; 6];
-        for px in &row_in[..(r + 1).min(w)] {
-            (0..6).for_each(|c| s[c] += f64::from(px[c]));
-        }
-        for x in 0..w {
-            (0..6).for_each(|c| slot[c * w + x] = s[c] as f32);
-            if x + r + 1 < w {
-                (0..6).for_each(|c| s[c] += f64::from(row_in[x + r + 1][c]));
-            }
-            if x >= r {
-                (0..6).for_each(|c| s[c] -= f64::from(row_in[x - r][c]));
-            }
-        }
-    };
-    let add = |vertical: &mut [f64], rows: &[f32], y: usize, sign: f64| {
-        let slot = &rows[(y % ring) * 6 * w..][..6 * w];
-        for (a, b) in vertical.iter_mut().zip(slot) {
-            *a += sign * f64::from(*b);
+    columns.clear();
+    columns.resize(w, [0.0; 6]);
+    prefix.clear();
+    prefix.resize(w + 1, [0.0; 6]);
+    sums.clear();
+    sums.resize(w, [0.0; 6]);
+    let update = |y: usize, add: bool, row_in: &mut [[f32; 6]], columns: &mut [[f64; 6]]| {
+        fill(y, row_in);
+        let pairs = columns.as_flattened_mut().iter_mut().zip(row_in.as_flattened());
+        if add {
+            pairs.for_each(|(c, v)| *c += f64::from(*v));
+        } else {
+            pairs.for_each(|(c, v)| *c -= f64::from(*v));
         }
     };
     for y in 0..(r + 1).min(h) {
-        horizontal(y, row_in, rows);
-        add(vertical, rows, y, 1.0);
+        update(y, true, row_in, columns);
     }
     for y in 0..h {
-        emit(y, vertical);
+        // Along the row: the six prefix sums advance together, then each window's sum is the
+        // difference of two.
+        let mut acc = [0f64; 6];
+        for (p, c) in prefix[1..].iter_mut().zip(columns.iter()) {
+            (0..6).for_each(|k| acc[k] += c[k]);
+            *p = acc;
+        }
+        for (x, out) in sums.iter_mut().enumerate() {
+            let (hi, lo) = (prefix[(x + r + 1).min(w)], prefix[x.saturating_sub(r)]);
+            *out = std::array::from_fn(|k| hi[k] - lo[k]);
+        }
+        emit(y, sums);
         if y + r + 1 < h {
-            horizontal(y + r + 1, row_in, rows);
-            add(vertical, rows, y + r + 1, 1.0);
+            update(y + r + 1, true, row_in, columns);
         }
         if y >= r {
-            add(vertical, rows, y - r, -1.0);
+            update(y - r, false, row_in, columns);
         }
     }
 }
@@ -96,8 +88,15 @@ fn window_sums(w: usize, h: usize, r: usize, channels: impl Fn(usize) -> [f32; 6
 #[derive(Default)]
 struct Scratch {
     row_in: Vec<[f32; 6]>,
-    rows: Vec<f32>,
-    vertical: Vec<f64>,
+    columns: Vec<[f64; 6]>,
+    prefix: Vec<[f64; 6]>,
+    sums: Vec<[f64; 6]>,
+}
+
+/// One view's intensities centred on `mean` and 0 where unusable, and 1 / 0 for usable /
+/// unusable: a disparity plane's channels are then products, without a branch.
+fn centred(view: &Plane, mean: f32) -> (Vec<f32>, Vec<f32>) {
+    view.gray.iter().zip(&view.invalid).map(|(g, bad)| if *bad { (0.0, 0.0) } else { (g - mean, 1.0) }).unzip()
 }
 
 /// The ZNCC cost volume of `left` against `right` for the disparities `d_min..=d_max`,
@@ -107,51 +106,80 @@ struct Scratch {
 pub fn costs(left: &Plane, right: &Plane, d_min: usize, d_max: usize, radius: usize, noise_levels: f32) -> Vec<u16> {
     let (w, h) = (left.width, left.height);
     let n = d_max - d_min + 1;
-    let (gl, il, gr, ir) = (&left.gray, &left.invalid, &right.gray, &right.invalid);
     // Centred on the views' mean: the window sums' differences keep their precision in f32.
-    let (sum, count) =
-        gl.iter().zip(il.iter()).chain(gr.iter().zip(ir.iter())).filter(|(_, b)| !**b).fold((0f64, 0usize), |(s, c), (g, _)| (s + f64::from(*g), c + 1));
+    let (sum, count) = left
+        .gray
+        .iter()
+        .zip(left.invalid.iter())
+        .chain(right.gray.iter().zip(right.invalid.iter()))
+        .filter(|(_, b)| !**b)
+        .fold((0f64, 0usize), |(s, c), (g, _)| (s + f64::from(*g), c + 1));
     let mean = (sum / count.max(1) as f64) as f32;
+    let ((lc, lv), (rc, rv)) = rayon::join(|| centred(left, mean), || centred(right, mean));
     let area = ((2 * radius + 1) * (2 * radius + 1)) as f64;
     let noise_var = f64::from(noise_levels * noise_levels);
-    let usable = |p: usize, d: usize| p % w >= d && !il[p] && !ir[p - d];
     let planes: Vec<Vec<u16>> = (d_min..=d_max)
         .into_par_iter()
-        .map_init(Scratch::default, |scratch, d| {
-            let mut plane = vec![WORST; w * h];
-            let channels = |p: usize| {
-                if !usable(p, d) {
-                    return [0.0; 6];
-                }
-                let (l, r) = (gl[p] - mean, gr[p - d] - mean);
-                [1.0, l, l * l, r, r * r, l * r]
-            };
-            let half_area = 0.5 * area;
-            window_sums(w, h, radius, channels, scratch, |y, sums| {
-                let ch = |c: usize| &sums[c * w..(c + 1) * w];
-                let (ms, sls, slls, srs, srrs, slrs) = (ch(0), ch(1), ch(2), ch(3), ch(4), ch(5));
-                let row = &mut plane[y * w..(y + 1) * w];
-                // Every pixel's cost computed without a branch (so the loop vectorises), then
-                // kept where a match is possible.
-                for x in 0..w {
-                    let (m, sl, sll, sr, srr, slr) = (ms[x], sls[x], slls[x], srs[x], srrs[x], slrs[x]);
-                    let eps = m * noise_var;
-                    let var_l = (sll - sl * sl / m).max(0.0);
-                    let var_r = (srr - sr * sr / m).max(0.0);
-                    let rho = (slr - sl * sr / m) / ((var_l + eps) * (var_r + eps)).sqrt();
-                    // Rounded to the nearest (the value is non-negative: `+ 0.5` and truncation
-                    // round as `f32::round` does, without a call into libm).
-                    let cost = ((1.0 - rho.clamp(-1.0, 1.0) as f32) * COST_PER_RHO + 0.5) as u16;
-                    row[x] = if m >= half_area && usable(y * w + x, d) { cost } else { WORST };
-                }
-            });
-            plane
-        })
+        .map_init(
+            || (Scratch::default(), Vec::new(), Vec::new()),
+            |(scratch, num, den), d| {
+                let mut plane = vec![WORST; w * h];
+                // Row y's channels: pixel x pairs with the right view's x − d (none for x < d).
+                let fill = |y: usize, row: &mut [[f32; 6]]| {
+                    let (l, lv) = (&lc[y * w..(y + 1) * w], &lv[y * w..(y + 1) * w]);
+                    let (r, rv) = (&rc[y * w..(y + 1) * w], &rv[y * w..(y + 1) * w]);
+                    let lo = d.min(w);
+                    row[..lo].fill([0.0; 6]);
+                    for (((c, l), lv), (r, rv)) in row[lo..].iter_mut().zip(&l[lo..]).zip(&lv[lo..]).zip(r.iter().zip(rv)) {
+                        let (a, b) = (l * rv, r * lv);
+                        *c = [lv * rv, a, a * a, b, b * b, a * b];
+                    }
+                };
+                let half_area = 0.5 * area;
+                window_sums(w, h, radius, fill, scratch, |y, sums| {
+                    let row = &mut plane[y * w..(y + 1) * w];
+                    let (lv, rv) = (&lv[y * w..(y + 1) * w], &rv[y * w..(y + 1) * w]);
+                    // Every pixel's cost in two passes without a branch (so that both vectorise):
+                    // with the sums multiplied by the count m,
+                    // ρ = (m Σlr − Σl Σr) / √((m Σl² − (Σl)² + m² σ²)(m Σr² − (Σr)² + m² σ²)),
+                    // numerator and radicand in f64 (their differences cancel), the rest in f32. A
+                    // pixel without a match gets ρ = −1, the worst cost.
+                    let lo = d.min(w);
+                    let len = w - lo;
+                    num.resize(len, 0.0);
+                    den.resize(len, 0.0);
+                    let cells = num.iter_mut().zip(den.iter_mut()).zip(sums[lo..].iter().zip(&lv[lo..]).zip(rv));
+                    for ((num, den), ((sums, lv), rv)) in cells {
+                        let [m, sl, sll, sr, srr, slr] = *sums;
+                        let eps = m * m * noise_var;
+                        let var_l = (m * sll - sl * sl).max(0.0) + eps;
+                        let var_r = (m * srr - sr * sr).max(0.0) + eps;
+                        let (cov, radicand) = ((m * slr - sl * sr) as f32, (var_l * var_r) as f32);
+                        let ok = (m >= half_area) & (lv * rv > 0.0);
+                        *num = if ok { cov } else { -1.0 };
+                        *den = if ok { radicand } else { 1.0 };
+                    }
+                    for ((c, n), r) in row[lo..].iter_mut().zip(num.iter()).zip(den.iter()) {
+                        // `max` first, not `clamp`: a 0 / 0 (a flat window without noise)
+                        // becomes −1, the worst cost, where `clamp` would keep the NaN.
+                        #[allow(clippy::manual_clamp)]
+                        let rho = (n / r.sqrt()).max(-1.0).min(1.0);
+                        // Rounded to the nearest integer by adding 2^23 (whose ulp is 1): the cost,
+                        // at most 1024, is then the low bits of the sum's mantissa.
+                        *c = (((1.0 - rho) * COST_PER_RHO) + 8_388_608.0).to_bits() as u16;
+                    }
+                });
+                plane
+            },
+        )
         .collect();
+    // Interleaved row by row, so that each row's writes stay in cache.
     let mut volume = vec![WORST; w * h * n];
-    volume.par_chunks_mut(n).enumerate().for_each(|(p, cell)| {
-        for (k, c) in cell.iter_mut().enumerate() {
-            *c = planes[k][p];
+    volume.par_chunks_mut((w * n).max(1)).enumerate().for_each(|(y, row)| {
+        for (k, plane) in planes.iter().enumerate() {
+            for (cell, c) in row.chunks_exact_mut(n).zip(&plane[y * w..(y + 1) * w]) {
+                cell[k] = *c;
+            }
         }
     });
     volume
@@ -220,5 +248,15 @@ mod tests {
         }
         assert!(compared > w * h * n / 2, "{compared} costs compared");
         assert!(off_by_one * 100 < compared, "{off_by_one} of {compared} costs round the other way");
+    }
+
+    #[test]
+    fn a_flat_window_without_noise_matches_nothing() {
+        // σ_n = 0 and a uniform wall: the correlation is 0 / 0. It must not come out as a
+        // perfect match (cost 0), which would pull SGM to any disparity.
+        let (w, h) = (24usize, 12usize);
+        let flat = Plane { gray: vec![90.0; w * h], invalid: vec![false; w * h], width: w, height: h };
+        let volume = costs(&flat, &flat, 0, 3, 2, 0.0);
+        assert!(volume.iter().all(|c| *c == WORST), "costs {:?}", volume.iter().filter(|c| **c != WORST).take(5).collect::<Vec<_>>());
     }
 }
