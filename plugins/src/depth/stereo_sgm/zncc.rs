@@ -99,6 +99,37 @@ fn centred(view: &Plane, mean: f32) -> (Vec<f32>, Vec<f32>) {
     view.gray.iter().zip(&view.invalid).map(|(g, bad)| if *bad { (0.0, 0.0) } else { (g - mean, 1.0) }).unzip()
 }
 
+/// One row's costs from its window sums (`sums`, count first; `valid`: the left and the right
+/// pixel of each pair, 1 / 0), in two passes without a branch (so that both vectorise). With the
+/// sums multiplied by the count m,
+/// `ρ = (m Σlr − Σl Σr) / √((m Σl² − (Σl)² + m² σ²)(m Σr² − (Σr)² + m² σ²))`: numerator and
+/// radicand in f64 (their differences cancel), the rest in f32. A pixel without a match (fewer
+/// than `half_area` pixels in both windows, or its own pair unusable) gets ρ = −1, the worst cost.
+fn row_costs(sums: &[[f64; 6]], (lv, rv): (&[f32], &[f32]), (half_area, noise_var): (f64, f64), (num, den): (&mut Vec<f32>, &mut Vec<f32>), out: &mut [u16]) {
+    num.resize(out.len(), 0.0);
+    den.resize(out.len(), 0.0);
+    let cells = num.iter_mut().zip(den.iter_mut()).zip(sums.iter().zip(lv).zip(rv));
+    for ((num, den), ((sums, lv), rv)) in cells {
+        let [m, sl, sll, sr, srr, slr] = *sums;
+        let eps = m * m * noise_var;
+        let var_l = (m * sll - sl * sl).max(0.0) + eps;
+        let var_r = (m * srr - sr * sr).max(0.0) + eps;
+        let (cov, radicand) = ((m * slr - sl * sr) as f32, (var_l * var_r) as f32);
+        let ok = (m >= half_area) & (lv * rv > 0.0);
+        *num = if ok { cov } else { -1.0 };
+        *den = if ok { radicand } else { 1.0 };
+    }
+    for ((c, n), r) in out.iter_mut().zip(num.iter()).zip(den.iter()) {
+        // `max` first, not `clamp`: a 0 / 0 (a flat window without noise) becomes −1, the
+        // worst cost, where `clamp` would keep the NaN.
+        #[allow(clippy::manual_clamp)]
+        let rho = (n / r.sqrt()).max(-1.0).min(1.0);
+        // Rounded to the nearest integer by adding 2^23 (whose ulp is 1): the cost, at most
+        // 1024, is then the low bits of the sum's mantissa.
+        *c = (((1.0 - rho) * COST_PER_RHO) + 8_388_608.0).to_bits() as u16;
+    }
+}
+
 /// The ZNCC cost volume of `left` against `right` for the disparities `d_min..=d_max`,
 /// `w × h × n` row-major then disparity (index `k`: disparity `d_min + k`). [`WORST`] where
 /// the centre pixel of either view is invalid or fewer than half the window's pixels are valid
@@ -137,37 +168,9 @@ pub fn costs(left: &Plane, right: &Plane, d_min: usize, d_max: usize, radius: us
                 };
                 let half_area = 0.5 * area;
                 window_sums(w, h, radius, fill, scratch, |y, sums| {
-                    let row = &mut plane[y * w..(y + 1) * w];
-                    let (lv, rv) = (&lv[y * w..(y + 1) * w], &rv[y * w..(y + 1) * w]);
-                    // Every pixel's cost in two passes without a branch (so that both vectorise):
-                    // with the sums multiplied by the count m,
-                    // ρ = (m Σlr − Σl Σr) / √((m Σl² − (Σl)² + m² σ²)(m Σr² − (Σr)² + m² σ²)),
-                    // numerator and radicand in f64 (their differences cancel), the rest in f32. A
-                    // pixel without a match gets ρ = −1, the worst cost.
                     let lo = d.min(w);
-                    let len = w - lo;
-                    num.resize(len, 0.0);
-                    den.resize(len, 0.0);
-                    let cells = num.iter_mut().zip(den.iter_mut()).zip(sums[lo..].iter().zip(&lv[lo..]).zip(rv));
-                    for ((num, den), ((sums, lv), rv)) in cells {
-                        let [m, sl, sll, sr, srr, slr] = *sums;
-                        let eps = m * m * noise_var;
-                        let var_l = (m * sll - sl * sl).max(0.0) + eps;
-                        let var_r = (m * srr - sr * sr).max(0.0) + eps;
-                        let (cov, radicand) = ((m * slr - sl * sr) as f32, (var_l * var_r) as f32);
-                        let ok = (m >= half_area) & (lv * rv > 0.0);
-                        *num = if ok { cov } else { -1.0 };
-                        *den = if ok { radicand } else { 1.0 };
-                    }
-                    for ((c, n), r) in row[lo..].iter_mut().zip(num.iter()).zip(den.iter()) {
-                        // `max` first, not `clamp`: a 0 / 0 (a flat window without noise)
-                        // becomes −1, the worst cost, where `clamp` would keep the NaN.
-                        #[allow(clippy::manual_clamp)]
-                        let rho = (n / r.sqrt()).max(-1.0).min(1.0);
-                        // Rounded to the nearest integer by adding 2^23 (whose ulp is 1): the cost,
-                        // at most 1024, is then the low bits of the sum's mantissa.
-                        *c = (((1.0 - rho) * COST_PER_RHO) + 8_388_608.0).to_bits() as u16;
-                    }
+                    let valid = (&lv[y * w + lo..(y + 1) * w], &rv[y * w..(y + 1) * w - lo]);
+                    row_costs(&sums[lo..], valid, (half_area, noise_var), (num, den), &mut plane[y * w + lo..(y + 1) * w]);
                 });
                 plane
             },
