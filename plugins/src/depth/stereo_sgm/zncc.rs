@@ -147,7 +147,7 @@ pub fn costs(left: &Plane, right: &Plane, d_min: usize, d_max: usize, radius: us
         .fold((0f64, 0usize), |(s, c), (g, _)| (s + f64::from(*g), c + 1));
     let mean = (sum / count.max(1) as f64) as f32;
     let ((lc, lv), (rc, rv)) = rayon::join(|| centred(left, mean), || centred(right, mean));
-    let area = ((2 * radius + 1) * (2 * radius + 1)) as f64;
+    let half_area = 0.5 * ((2 * radius + 1) * (2 * radius + 1)) as f64;
     let noise_var = f64::from(noise_levels * noise_levels);
     let planes: Vec<Vec<u16>> = (d_min..=d_max)
         .into_par_iter()
@@ -166,7 +166,6 @@ pub fn costs(left: &Plane, right: &Plane, d_min: usize, d_max: usize, radius: us
                         *c = [lv * rv, a, a * a, b, b * b, a * b];
                     }
                 };
-                let half_area = 0.5 * area;
                 window_sums(w, h, radius, fill, scratch, |y, sums| {
                     let lo = d.min(w);
                     let valid = (&lv[y * w + lo..(y + 1) * w], &rv[y * w..(y + 1) * w - lo]);

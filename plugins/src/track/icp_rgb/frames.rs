@@ -144,10 +144,10 @@ pub fn live(
     }
     if let Some(highlights) = frame.masks.get(MASK_SPECULAR).filter(|_| rgb_margin_px > 0) {
         let margin = dilate(highlights, rgb_margin_px, None);
-        gray.data_mut().iter_mut().zip(margin.data()).filter(|(_, m)| **m).for_each(|(g, _)| *g = 0.0);
+        blank(&mut gray, &margin);
     }
     if let Some(unseen) = frame.masks.get(MASK_OUT_OF_VIEW) {
-        gray.data_mut().par_iter_mut().zip(unseen.data().par_iter()).filter(|(_, m)| **m).for_each(|(g, _)| *g = 0.0);
+        blank(&mut gray, unseen);
     }
     let mut out = pyramid(g.smooth.clone(), gray, (Some(g.v_smooth.clone()), Some(g.normals.clone())), cam, levels, prep);
     if let Some(sigma) = &frame.depth_sigma_m {
@@ -157,6 +157,11 @@ pub fn live(
         set_share(&mut out, share);
     }
     out
+}
+
+/// Sets the intensity to 0 ("no intensity") wherever `mask` is set.
+fn blank(gray: &mut GrayF32, mask: &capsule_slam_framework::Mask) {
+    gray.data_mut().par_iter_mut().zip(mask.data().par_iter()).filter(|(_, m)| **m).for_each(|(g, _)| *g = 0.0);
 }
 
 /// Gives every level its pixels' share ([`Level::share`]): level l's pixel the mean of its
