@@ -83,8 +83,11 @@ capsule_slam_framework::plugin_params! {
         pub speckle_px: u32 = 50; unit = "px"; range = 0.0..=100000.0;
         /// A pixel with a channel at or above this in either view was clipped: no match there.
         pub saturation: u32 = 250; unit = "8-bit"; range = 1.0..=256.0;
-        /// σ of a matched disparity, the depth's σ is `z² σ_d / (f b)` (the phantom: 0.3).
-        pub disparity_sigma_px: f64 = 0.3; unit = "px"; range = 0.01..=10.0;
+        /// σ of a matched disparity, the depth's σ is `z² σ_d / (f b)`: the RMS of this
+        /// matcher's disparity error over every matched pixel, 0.46–0.52 px on the 5 mm phantom
+        /// pairs of presets 1, 4, 5 (`docs/results/stereo.md`, "The depth's σ"). The robust σ
+        /// (1.48 MAD) is 0.32–0.33 px; the RMS counts the tails the weights must expect.
+        pub disparity_sigma_px: f64 = 0.5; unit = "px"; range = 0.01..=10.0;
         /// Correlation length of the depth error handed to the trackers (a block of this size
         /// counts as one measurement; `DepthEstimate::sigma_correlation_px`). The refinement's
         /// window is 21 px, but counting 21×21 blocks leaves tracking to the photometric term,
