@@ -15,7 +15,7 @@ use capsule_slam_run::{RunOptions, run};
 /// Arguments of `bench`.
 #[derive(clap::Args, Debug)]
 pub struct BenchArgs {
-    /// Image sizes, comma-separated (naneye, 320, voyager, potensic).
+    /// Image sizes, comma-separated (naneye, 320, voyager, potensic, pal).
     #[arg(long, default_value = "naneye,320")]
     sizes: String,
     /// Phantom preset.
@@ -50,7 +50,7 @@ pub fn run_bench(args: &BenchArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow:
     println!("| size | frames | stage | mean ms | p95 ms |");
     println!("|---|---|---|---|---|");
     for name in args.sizes.split(',').map(str::trim) {
-        let size = SizePreset::parse(name).ok_or_else(|| anyhow!("--sizes: unknown size `{name}` (naneye, 320, voyager, potensic)"))?;
+        let size = SizePreset::parse(name).ok_or_else(|| anyhow!("--sizes: unknown size `{name}` (naneye, 320, voyager, potensic, pal)"))?;
         let spec = PhantomSpec { frames: args.frames, size, deform_mm: args.deform_mm, ..PhantomSpec::preset(args.preset) };
         let (w, h) = size.size();
         let wave = if spec.deform_mm > 0.0 { format!("-deform{}mm", spec.deform_mm) } else { String::new() };

@@ -140,6 +140,9 @@ pub fn run(args: &RunArgs, gpu: &capsule_slam_gpu::GpuHandle) -> anyhow::Result<
     let registry = crate::registry()?;
     let Prepared { config, source, input } = prepare(args, &registry)?;
     let dataset = Dataset::open(&input, &config.input, config.camera.as_ref()).with_context(|| format!("opening the input {}", input.display()))?;
+    for w in dataset.warnings() {
+        eprintln!("warning: {w}");
+    }
     if dataset.dropped_without_depth() > 0 {
         eprintln!("note: {} rgb frames have no depth image within {} s and are skipped", dataset.dropped_without_depth(), config.input.association_tolerance_s);
     }

@@ -25,7 +25,8 @@ pub struct SynthArgs {
     /// frames in all.
     #[arg(long, default_value_t = 1)]
     pub repeat: usize,
-    /// Image size: naneye (250×250), 320, voyager (720×480), potensic (1280×720).
+    /// Image size: naneye (250×250), 320, voyager (720×480), potensic (1280×720), pal (720×576,
+    /// a stereo endoscope's video).
     #[arg(long, default_value = "320")]
     pub size: String,
     /// Seed of texture and noise.
@@ -93,7 +94,7 @@ impl SynthArgs {
         let mut s = PhantomSpec::preset(self.preset);
         s.frames = self.frames;
         s.repeat = self.repeat;
-        s.size = SizePreset::parse(&self.size).ok_or_else(|| anyhow!("--size {}: use naneye, 320, voyager or potensic", self.size))?;
+        s.size = SizePreset::parse(&self.size).ok_or_else(|| anyhow!("--size {}: use naneye, 320, voyager, potensic or pal", self.size))?;
         s.seed = self.seed;
         s.deform_mm = self.deform_mm;
         s.surface_every = self.surface_every;

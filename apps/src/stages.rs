@@ -47,6 +47,9 @@ pub fn front_end(config: Option<&std::path::Path>, set: &[String], input: &std::
     let registry = crate::registry()?;
     let config = crate::load_config(config, set, &registry)?;
     let dataset = capsule_slam_io::Dataset::open(input, &config.input, config.camera.as_ref()).with_context(|| format!("opening {}", input.display()))?;
+    for w in dataset.warnings() {
+        eprintln!("warning: {w}");
+    }
     let resolved = capsule_slam_framework::config::validate::validate(&config, &registry, dataset.rig().kind(), "the config")?;
     let env = BuildEnv::new(dataset.rig(), Some(input.to_path_buf())).with_depth_noise(dataset.camera_file().depth_noise).with_gpu(gpu.clone());
     let preprocessors = preprocessors(&registry, &resolved, &env, &config.pipeline.preprocess)?;

@@ -68,6 +68,14 @@ fn out_of_range_and_nan_values_are_rejected() {
 }
 
 #[test]
+fn the_undistorted_view_is_one_of_two_and_a_typo_says_which() {
+    check(OK, &["input.undistorted_view=whole"], ViewKind::Mono).unwrap();
+    check(OK, &["input.undistorted_view=source"], ViewKind::Mono).unwrap();
+    let e = check(OK, &["input.undistorted_view=wide"], ViewKind::Mono).unwrap_err().to_string();
+    assert!(e.contains("undistorted_view") && e.contains("whole") && e.contains("source"), "{e}");
+}
+
+#[test]
 fn an_unused_plugin_table_is_an_error() {
     let e = check(&format!("{OK}[plugins.test-shift]\nat_frame = 3\n[plugins.nonexistent]\n"), &[], ViewKind::Mono).unwrap_err();
     let keys: Vec<_> = e.problems.iter().map(|p| p.key.as_str()).collect();

@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use capsule_slam_framework::camera::CameraFile;
-use capsule_slam_framework::config::Config;
+use capsule_slam_framework::config::{Config, UndistortedView};
 use capsule_slam_framework::files::{read_camera_file, write_camera_file};
 use capsule_slam_framework::lens::LensModel;
 use capsule_slam_io::Dataset;
@@ -66,6 +66,32 @@ fn a_lens_phantom_is_undistorted_as_it_loads_and_fuses_onto_the_wall() {
         let bent = metric(&run_on(&ignored, &tmp.path().join(format!("{name}-bent")), "ground-truth"), "live_surface_rmse_m");
         assert!(bent > 10.0 * on_wall.max(1e-4), "{name}: ignoring the lens gives {bent} m, undistorting {on_wall} m");
     }
+}
+
+#[test]
+fn the_whole_view_keeps_the_lens_outer_field_on_the_wall() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("barrel");
+    phantom(&data, Some(BARREL), 30);
+    let input = capsule_slam_framework::config::InputConfig { undistorted_view: UndistortedView::Whole, ..Config::default().input };
+    let (cropped, whole) = (Dataset::open(&data, &Config::default().input, None).unwrap(), Dataset::open(&data, &input, None).unwrap());
+    let (c, w) = (cropped.rig().camera().clone(), whole.rig().camera().clone());
+    assert_eq!((c.width, c.height, c.fx), (250, 250, w.fx), "the focal length is kept");
+    assert!(w.width > c.width && w.height > c.height, "the canvas grows: {}×{}", w.width, w.height);
+    assert!(whole.warnings().is_empty(), "{:?}", whole.warnings());
+    let frame = whole.load(0).unwrap();
+    assert_eq!(frame.views.reference().size(), (w.width, w.height), "the frames come on the grown canvas");
+    // Exact depth at the true poses: the outer field lands on the wall as the centre does, and
+    // the map holds more of the wall.
+    let sets = |view: &'static str| {
+        ["pipeline.depth=sensor", "pipeline.preprocess=[]", "pipeline.tracker=ground-truth", "input.initial_pose=ground-truth", "output.map_surfels=all", view]
+    };
+    let opts = RunOptions { write_map: true, ..RunOptions::default() };
+    let a = run_with(&data, &tmp.path().join("out-source"), &sets("input.undistorted_view=source"), &opts);
+    let b = run_with(&data, &tmp.path().join("out-whole"), &sets("input.undistorted_view=whole"), &opts);
+    let on_wall = metric(&b, "live_surface_rmse_m");
+    assert!(on_wall < 1.5e-4, "the whole view's map is {on_wall} m off the wall");
+    assert!(b.surfels as f64 > 1.1 * a.surfels as f64, "surfels: cropped {}, whole view {}", a.surfels, b.surfels);
 }
 
 #[test]

@@ -65,7 +65,7 @@ pub struct SynthSpec {
     pub repeat: Option<usize>,
     /// A stereo rig of this baseline, mm.
     pub stereo: Option<f64>,
-    /// Image size: naneye, 320 (default), voyager or potensic.
+    /// Image size: naneye, 320 (default), voyager, potensic or pal.
     pub size: Option<String>,
     /// With a wave, the true surface every this many frames too (the live surface error).
     pub surface_every: Option<usize>,
@@ -206,7 +206,7 @@ impl Plan {
                 (Some(_), None) => {}
                 (None, Some(s)) => {
                     if let Some(size) = s.size.as_deref().filter(|z| capsule_slam_phantom::SizePreset::parse(z).is_none()) {
-                        out.push(format!("input[{k}].synth.size = {size:?}: use naneye, 320, voyager or potensic"));
+                        out.push(format!("input[{k}].synth.size = {size:?}: use naneye, 320, voyager, potensic or pal"));
                     }
                     if !(1..=7).contains(&s.preset) {
                         out.push(format!("input[{k}].synth.preset = {}: presets are 1–7", s.preset));

@@ -168,12 +168,19 @@ pub struct PinholeCamera {
     pub distortion: Option<LensModel>,
     /// Radius of the round field of view about (cx, cy), pixels.
     pub fov_radius_px: Option<f64>,
+    /// The radius that vignetting's `r` is a share of, pixels: the half-diagonal of the camera
+    /// `light.toml` was calibrated with. `None`: this camera's own
+    /// ([`PinholeCamera::half_diagonal_px`]); set where the frames are undistorted onto a larger
+    /// canvas than the file's (`input.undistorted_view = "whole"`), so that V stays a function
+    /// of the ray.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vignetting_radius_px: Option<f64>,
 }
 
 impl PinholeCamera {
     /// An undistorted camera with the full rectangle as field of view.
     pub fn new(width: usize, height: usize, fx: f64, fy: f64, cx: f64, cy: f64) -> Self {
-        Self { width, height, fx, fy, cx, cy, distortion: None, fov_radius_px: None }
+        Self { width, height, fx, fy, cx, cy, distortion: None, fov_radius_px: None, vignetting_radius_px: None }
     }
 
     /// Projects a camera-frame point with the pinhole model (no distortion); `None` behind the
@@ -229,6 +236,12 @@ impl PinholeCamera {
         0.5 * ((self.width * self.width + self.height * self.height) as f64).sqrt()
     }
 
+    /// The radius vignetting's `r` is a share of, pixels: [`PinholeCamera::vignetting_radius_px`]
+    /// or, without one, the half-diagonal.
+    pub fn vignetting_radius(&self) -> f64 {
+        self.vignetting_radius_px.unwrap_or_else(|| self.half_diagonal_px())
+    }
+
     /// The camera of a pyramid level downsampled by `2^level` (fx/2^l, cx/2^l as in
     /// ElasticFusion's pyramid; sizes rounded down).
     pub fn pyramid_level(&self, level: u32) -> Self {
@@ -242,6 +255,7 @@ impl PinholeCamera {
             cy: self.cy / s,
             distortion: self.distortion,
             fov_radius_px: self.fov_radius_px.map(|r| r / s),
+            vignetting_radius_px: self.vignetting_radius_px.map(|r| r / s),
         }
     }
 }
@@ -258,6 +272,7 @@ pub enum ViewKind {
 
 /// The capsule's cameras.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[expect(clippy::large_enum_variant, reason = "one rig per run, built once: boxing a camera would buy nothing")]
 pub enum Rig {
     /// One camera.
     Mono(PinholeCamera),

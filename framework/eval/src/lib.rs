@@ -89,11 +89,54 @@ impl Ate {
     }
 }
 
-/// Umeyama alignment of pose positions `src` onto `dst`.
+/// Below this spread across its main direction (the square root of the positions' second
+/// principal variance, metres), a ground-truth path is still or straight: its positions leave
+/// the rotation about it free. Every phantom preset spreads 3.5–8 mm.
+pub const PATH_SPREAD_MIN_M: f64 = 1e-3;
+
+/// How far along each camera axis the orientations enter the alignment of a still or straight
+/// path (metres): organ scale, the distance to the wall.
+pub const AXIS_REACH_M: f64 = 0.01;
+
+/// Umeyama alignment of pose positions `src` onto `dst` (TUM's ATE). A ground-truth path that
+/// spreads less than [`PATH_SPREAD_MIN_M`] across its main direction (a still camera, a
+/// straight push) does not fix the rotation about it, and Umeyama's would be the noise's: such a
+/// path is aligned by its poses instead, each as its centre and the points [`AXIS_REACH_M`] along
+/// its axes. With scale, the scale is the positions' (`None` for a still path, which has none).
 pub fn umeyama_poses(src: &[Iso3], dst: &[Iso3], with_scale: bool) -> Option<Similarity> {
     let s: Vec<Point3<f64>> = src.iter().map(|p| Point3::from(p.translation.vector)).collect();
     let d: Vec<Point3<f64>> = dst.iter().map(|p| Point3::from(p.translation.vector)).collect();
-    umeyama(&s, &d, with_scale)
+    let spread = principal_spreads_m(&d);
+    if spread[1] >= PATH_SPREAD_MIN_M {
+        return umeyama(&s, &d, with_scale);
+    }
+    // A still path (no spread along its main direction either) has no scale to fit.
+    if with_scale && spread[0] < PATH_SPREAD_MIN_M {
+        return None;
+    }
+    let scale = if with_scale { umeyama(&s, &d, true).map(|a| a.scale).filter(|s| s.is_finite() && *s > 0.0)? } else { 1.0 };
+    let frame = |p: &Iso3, reach: f64| -> [Point3<f64>; 4] {
+        let c = Point3::from(p.translation.vector);
+        [c, c + p.rotation * nalgebra::Vector3::x() * reach, c + p.rotation * nalgebra::Vector3::y() * reach, c + p.rotation * nalgebra::Vector3::z() * reach]
+    };
+    let fs: Vec<Point3<f64>> = src.iter().flat_map(|p| frame(p, AXIS_REACH_M / scale)).collect();
+    let fd: Vec<Point3<f64>> = dst.iter().flat_map(|p| frame(p, AXIS_REACH_M)).collect();
+    let rigid = umeyama(&fs.iter().map(|p| Point3::from(p.coords * scale)).collect::<Vec<_>>(), &fd, false)?;
+    Some(Similarity { scale, rotation: rigid.rotation, translation: rigid.translation })
+}
+
+/// The square roots of the two largest principal variances of `points`, metres: how far they
+/// spread along their main direction and across it.
+fn principal_spreads_m(points: &[Point3<f64>]) -> [f64; 2] {
+    if points.is_empty() {
+        return [0.0; 2];
+    }
+    let n = points.len() as f64;
+    let mu = points.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / n;
+    let cov = points.iter().map(|p| (p.coords - mu) * (p.coords - mu).transpose()).sum::<nalgebra::Matrix3<f64>>() / n;
+    let mut ev: Vec<f64> = cov.symmetric_eigenvalues().iter().copied().collect();
+    ev.sort_by(|a, b| b.total_cmp(a));
+    [0, 1].map(|k| ev.get(k).copied().unwrap_or(0.0).max(0.0).sqrt())
 }
 
 /// The alignment of `est` onto `gt` (positions matched by timestamp), with scale (Sim(3)) or
@@ -188,6 +231,34 @@ mod tests {
             let p = sim.apply_pose(&e.t_world_cam);
             assert!((p.translation.vector - g.t_world_cam.translation.vector).norm() < 1e-9);
             assert!(p.rotation.angle().is_finite());
+        }
+    }
+
+    #[test]
+    fn a_still_or_straight_path_is_aligned_by_its_orientations() {
+        // The estimate is the truth seen from another world frame (a 0.5 rad turn about the
+        // path and an offset), with micrometre jitter: positions alone leave the turn to the
+        // jitter, the orientations fix it.
+        let t = Iso3::from_parts(Vector3::new(0.01, -0.02, 0.005).into(), nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, 0.5)));
+        let look = nalgebra::UnitQuaternion::from_euler_angles(0.2, -0.4, 0.1);
+        for step_m in [0.0, 0.001] {
+            let gt: Vec<StampedPose> = (0..10)
+                .map(|i| StampedPose { timestamp_s: i as f64, t_world_cam: Iso3::from_parts(Vector3::new(0.0, 0.0, step_m * i as f64).into(), look) })
+                .collect();
+            let est: Vec<StampedPose> = gt
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    let jitter = Iso3::translation(1e-6 * (i as f64 * 1.3).sin(), 1e-6 * (i as f64 * 2.1).cos(), 1e-6 * (i as f64 * 0.7).sin());
+                    StampedPose { timestamp_s: p.timestamp_s, t_world_cam: jitter * t.inverse() * p.t_world_cam }
+                })
+                .collect();
+            let sim = align_trajectory(&est, &gt, 0.01, false).unwrap();
+            let turn = (Rotation3::from_matrix_unchecked(sim.rotation) * t.rotation.to_rotation_matrix().inverse()).angle();
+            assert!(turn < 1e-3, "path step {step_m} m: the alignment is {turn} rad off the true turn");
+            // With scale: a still path has none; a straight one has the positions'.
+            let scaled = align_trajectory(&est, &gt, 0.01, true);
+            assert_eq!(scaled.is_none(), step_m == 0.0, "path step {step_m} m");
         }
     }
 

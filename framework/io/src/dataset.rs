@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use capsule_slam_framework::camera::{CameraFile, PinholeCamera, Rig};
-use capsule_slam_framework::config::InputConfig;
+use capsule_slam_framework::config::{InputConfig, UndistortedView};
 use capsule_slam_framework::error::LoadError;
 use capsule_slam_framework::files::read_camera_file;
 use capsule_slam_framework::frame::{CameraFrame, MASK_OUT_OF_VIEW, Masks, Photometry, Views};
@@ -45,11 +45,11 @@ pub struct Dataset {
 
 /// The undistortion of a lens camera (after checking that `first_rgb` has the camera's size: the
 /// map is as large as the camera says) and the out-of-view mask the stages get, if any.
-fn view_maps(camera: &CameraFile, first_rgb: &Path) -> Result<(Option<Undistortion>, Option<Mask>), LoadError> {
+fn view_maps(camera: &CameraFile, first_rgb: &Path, view: UndistortedView) -> Result<(Option<Undistortion>, Option<Mask>), LoadError> {
     let cam = camera.camera();
     if cam.distortion.is_some() {
         images::check_dimensions(first_rgb, (cam.width, cam.height))?;
-        let u = Undistortion::new(&cam);
+        let u = Undistortion::with_view(&cam, view);
         let out_of_view = u.out_of_view().data().iter().any(|b| *b).then(|| u.out_of_view().clone());
         return Ok((Some(u), out_of_view));
     }
@@ -166,9 +166,9 @@ impl Dataset {
                 "no frames: expected rgb.txt (TUM layout) or image files (png, jpg, bmp)",
             ));
         }
-        let (undistortion, out_of_view) = view_maps(&camera, &entries[0].rgb)?;
+        let (undistortion, out_of_view) = view_maps(&camera, &entries[0].rgb, input.undistorted_view)?;
         let right_undistortion = match camera.rig() {
-            Rig::Stereo { right, .. } if right.distortion.is_some() => Some(Undistortion::new(&right)),
+            Rig::Stereo { right, .. } if right.distortion.is_some() => Some(Undistortion::with_view(&right, input.undistorted_view)),
             _ => None,
         };
         Ok(Self {
@@ -215,6 +215,20 @@ impl Dataset {
                 Rig::Stereo { left: seen(left, &self.undistortion), right: seen(right, &self.right_undistortion), t_right_left }
             }
         }
+    }
+
+    /// What the loader changed that a run should say: a lens's whole view cut to the largest
+    /// canvas (`input.undistorted_view = "whole"`).
+    pub fn warnings(&self) -> Vec<String> {
+        [("left", &self.undistortion), ("right", &self.right_undistortion)]
+            .into_iter()
+            .filter(|(_, u)| u.as_ref().is_some_and(Undistortion::clipped))
+            .map(|(side, _)| {
+                format!(
+                    "the {side} camera's lens sees wider than twice camera.toml's image on a pinhole canvas: its undistorted view (input.undistorted_view = \"whole\") is cut there"
+                )
+            })
+            .collect()
     }
 
     /// The undistortion applied to every frame, if `camera.toml` names a lens.

@@ -22,7 +22,7 @@ use capsule_slam_framework::lens::{DistortionSpec, LensModel};
 use capsule_slam_framework::light::LightModel;
 use shape::StomachShape;
 
-/// Image size presets: the paper's three cameras and a 320×320 capsule.
+/// Image size presets: the paper's three cameras, a 320×320 capsule and PAL video.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 pub enum SizePreset {
     /// NanEye, 250×250.
@@ -38,16 +38,21 @@ pub enum SizePreset {
     /// Potensic, 1280×720.
     #[serde(rename = "potensic")]
     Potensic,
+    /// PAL video, 720×576: what stereo endoscopes record (the Open-CAS ex-vivo pairs, the
+    /// Hamlyn sequences at twice their 360×288).
+    #[serde(rename = "pal")]
+    Pal,
 }
 
 impl SizePreset {
-    /// Parses `naneye`, `320`, `voyager` or `potensic`.
+    /// Parses `naneye`, `320`, `voyager`, `potensic` or `pal`.
     pub fn parse(s: &str) -> Option<Self> {
         Some(match s {
             "naneye" | "250" => Self::NanEye,
             "320" | "capsule" => Self::Capsule320,
             "voyager" | "720x480" => Self::Voyager,
             "potensic" | "1280x720" => Self::Potensic,
+            "pal" | "720x576" => Self::Pal,
             _ => return None,
         })
     }
@@ -59,6 +64,7 @@ impl SizePreset {
             Self::Capsule320 => (320, 320),
             Self::Voyager => (720, 480),
             Self::Potensic => (1280, 720),
+            Self::Pal => (720, 576),
         }
     }
 }

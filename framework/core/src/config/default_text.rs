@@ -37,6 +37,7 @@ pub fn default_config_text(registry: &Registry) -> String {
     let _ = writeln!(s, "association_tolerance_s = {:?}   # s, rgb/depth/ground-truth timestamp matching (TUM associate.py)", i.association_tolerance_s);
     let _ = writeln!(s, "frame_rate_hz = {:?}   # Hz, for a plain image folder", i.frame_rate_hz);
     let _ = writeln!(s, "initial_pose = \"identity\"   # or \"ground-truth\": start at the first ground-truth pose");
+    let _ = writeln!(s, "undistorted_view = \"source\"   # a lens's frames undistorted at camera.toml's size; \"whole\": grown to the lens's whole view");
     let _ = writeln!(s, "\n[output]");
     let _ = writeln!(s, "dir = {:?}", o.dir.display().to_string());
     let _ = writeln!(s, "map = {}   # write map.ply", o.map);

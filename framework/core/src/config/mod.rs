@@ -109,6 +109,22 @@ pub enum InitialPose {
     GroundTruth,
 }
 
+/// The camera the stages see when `camera.toml` names a lens (the frames are undistorted onto
+/// it as they load).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum UndistortedView {
+    /// The file's intrinsics and image size: a barrel lens's outer field, which a pinhole
+    /// camera of that size does not see, is cropped.
+    #[default]
+    Source,
+    /// The file's focal length and every ray the lens's image sees: the canvas grows (the
+    /// principal point moves with it) to hold the source's whole field of view, at most
+    /// twice the file's width and height (OpenCV's `getOptimalNewCameraMatrix` with alpha 1
+    /// and a larger new image size, the focal length kept).
+    Whole,
+}
+
 /// `[input]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -127,11 +143,20 @@ pub struct InputConfig {
     pub frame_rate_hz: f64,
     /// The first pose of the trajectory.
     pub initial_pose: InitialPose,
+    /// The undistorted camera of a lens input: its own size or the lens's whole view.
+    pub undistorted_view: UndistortedView,
 }
 
 impl Default for InputConfig {
     fn default() -> Self {
-        Self { path: None, max_frames: None, association_tolerance_s: 0.02, frame_rate_hz: 30.0, initial_pose: InitialPose::Identity }
+        Self {
+            path: None,
+            max_frames: None,
+            association_tolerance_s: 0.02,
+            frame_rate_hz: 30.0,
+            initial_pose: InitialPose::Identity,
+            undistorted_view: UndistortedView::Source,
+        }
     }
 }
 

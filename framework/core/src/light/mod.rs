@@ -118,7 +118,7 @@ impl LightModel {
     /// V(u) at pixel (u, v).
     pub fn vignetting_at(&self, cam: &PinholeCamera, u: f64, v: f64) -> f64 {
         let (du, dv) = (u - cam.cx, v - cam.cy);
-        self.vignetting_of_r2((du * du + dv * dv) / (cam.half_diagonal_px() * cam.half_diagonal_px()))
+        self.vignetting_of_r2((du * du + dv * dv) / (cam.vignetting_radius() * cam.vignetting_radius()))
     }
 
     /// V at r² (r: distance to the principal point over the half-diagonal).

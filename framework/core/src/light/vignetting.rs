@@ -17,10 +17,11 @@ use super::LightModel;
 use crate::camera::PinholeCamera;
 use crate::frame::Falloff;
 
-/// `r²` of pixel (u, v): squared distance to the principal point over the half-diagonal².
+/// `r²` of pixel (u, v): squared distance to the principal point over the half-diagonal² (of
+/// the calibrated camera: [`PinholeCamera::vignetting_radius`]).
 pub fn radius2(cam: &PinholeCamera, u: f64, v: f64) -> f64 {
     let (du, dv) = (u - cam.cx, v - cam.cy);
-    let hd = cam.half_diagonal_px();
+    let hd = cam.vignetting_radius();
     (du * du + dv * dv) / (hd * hd)
 }
 
