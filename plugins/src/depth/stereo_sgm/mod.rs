@@ -44,13 +44,24 @@ capsule_slam_framework::plugin_params! {
         pub min_depth_m: f64 = 0.01; unit = "m"; range = 0.001..=10.0;
         /// Farthest depth searched (the smallest disparity).
         pub max_depth_m: f64 = 0.25; unit = "m"; range = 0.001..=100.0;
-        /// Pyramid levels above the full resolution (the first match is at 1/2^levels).
+        /// Pyramid levels above the full resolution (the first match is at 1/2^levels); see
+        /// `focal_reference_px`.
         pub levels: u32 = 2; unit = "-"; range = 0.0..=5.0;
         /// ZNCC window radius at the top level, pixels of that level.
         pub top_radius: u32 = 3; unit = "px"; range = 1.0..=15.0;
         /// ZNCC window radius of every refinement, pixels of its level: wide, because the warp
-        /// has taken out the slant and the noise needs the support.
+        /// has taken out the slant and the noise needs the support; see `focal_reference_px`.
         pub radius: u32 = 10; unit = "px"; range = 1.0..=30.0;
+        /// 0 (the default): `radius` and `levels` as given. Else the focal length they are set
+        /// for (160: the 320×320 phantom's, where they were measured): at a longer focal length
+        /// f the radius becomes `radius · f / focal_reference_px` (rounded) and the levels
+        /// `levels + round(log₂(f / focal_reference_px))`, so that the windows see the same
+        /// angle of the wall; a shorter one keeps both (fewer pixels would average less noise).
+        /// On 720×576 phantom pairs (f = 288 px) 160 halves the single-frame pixels more than
+        /// 1 px off (9.7 → 4.0 %), but a still sequence's map covers less of the rim (CT-style
+        /// points within 2 mm 96.2 → 94.5 %, 88.9 → 82.3 % through a strong lens), which the
+        /// ex-vivo acceptance scores: off by default (`docs/results/stereo.md`).
+        pub focal_reference_px: f64 = 0.0; unit = "px"; range = 0.0..=100000.0;
         /// σ of the sensor noise of the 8-bit intensities: a window whose variance is mostly
         /// noise correlates near 0 (the phantom: 2.4–3.5).
         pub noise_levels: f64 = 2.0; unit = "levels"; range = 0.0..=50.0;
@@ -103,6 +114,33 @@ capsule_slam_framework::plugin_params! {
         /// albedo (cos θ): wider is smoother (the phantom pair's bias in the albedo: +3.1 % at
         /// 1 px, +1.5 % at 4, +0.5 % at 8).
         pub normal_px: u32 = 8; unit = "px"; range = 1.0..=30.0;
+    }
+}
+
+/// The refinement window's radius and the pyramid's levels at focal length `fx_px`
+/// ([`StereoSgmParams::focal_reference_px`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ScaledWindow {
+    /// ZNCC radius of the refinements, pixels.
+    pub radius: usize,
+    /// Pyramid levels above the full resolution.
+    pub levels: usize,
+}
+
+/// `radius` and `levels` scaled from `focal_reference_px` up to a longer `fx_px`: the radius by
+/// the ratio (at most 60 px), the levels by its base-2 logarithm (at most 5); a shorter focal
+/// length keeps both.
+pub fn scaled_window(p: &StereoSgmParams, fx_px: f64) -> ScaledWindow {
+    let given = ScaledWindow { radius: p.radius as usize, levels: p.levels as usize };
+    if p.focal_reference_px <= 0.0 || !(fx_px > 0.0) {
+        return given;
+    }
+    // Never below the reference: a smaller window averages fewer pixels of sensor noise (the
+    // 250×250 phantom pair at f = 125 px, its window scaled to 8 px: AbsRel 0.028 → 0.030).
+    let ratio = (fx_px / p.focal_reference_px).max(1.0);
+    ScaledWindow {
+        radius: (f64::from(p.radius) * ratio).round().clamp(1.0, 60.0) as usize,
+        levels: (f64::from(p.levels) + ratio.log2().round()).clamp(0.0, 5.0) as usize,
     }
 }
 
@@ -168,6 +206,7 @@ impl StereoSgm {
         let d_max = ((fb / p.min_depth_m).ceil() as usize).min(r.camera.width.saturating_sub(1)).max(1);
         let d_min = ((fb / p.max_depth_m).floor() as usize).min(d_max - 1);
         let penalty = |v: f64| (v * f64::from(COST_PER_RHO)).round() as u16;
+        let scaled = scaled_window(p, r.camera.fx);
         MatchSettings {
             sgm: SgmSettings {
                 d_min,
@@ -178,9 +217,9 @@ impl StereoSgm {
                 lr_max_px: p.lr_max_px as f32,
                 uniqueness: p.uniqueness as f32,
             },
-            levels: p.levels as usize,
+            levels: scaled.levels,
             top_radius: p.top_radius as usize,
-            radius: p.radius as usize,
+            radius: scaled.radius,
             noise_levels: p.noise_levels as f32,
             search_px: p.search_px as usize,
             smooth_px: p.smooth_px as f32,

@@ -276,3 +276,21 @@ fn with_a_light_model_the_observed_albedo_is_the_walls() {
     let (a, b) = (observed.at(160, 160), half.at(160, 160));
     assert!(a > 0.0 && (b / a - 0.5).abs() < 1e-4, "{a} {b}");
 }
+
+#[test]
+fn the_window_scales_up_with_the_focal_length_and_never_down() {
+    let given = super::ScaledWindow { radius: 10, levels: 2 };
+    // Off by default: the window as given at any focal length.
+    assert_eq!(super::scaled_window(&StereoSgmParams::default(), 288.0), given);
+    let p = StereoSgmParams { focal_reference_px: 160.0, ..StereoSgmParams::default() };
+    let at = |f: f64| super::scaled_window(&p, f);
+    // The reference camera (320×320, f = 160) and a shorter lens keep the measured window.
+    assert_eq!(at(160.0), given);
+    assert_eq!(at(125.0), given);
+    // A 720×576 phantom (f = 288) sees the same angle through 18 px and one level more; a
+    // camera twice as sharp, 20 px.
+    assert_eq!(at(288.0), super::ScaledWindow { radius: 18, levels: 3 });
+    assert_eq!(at(320.0), super::ScaledWindow { radius: 20, levels: 3 });
+    // Bounded.
+    assert_eq!(at(1e6), super::ScaledWindow { radius: 60, levels: 5 });
+}
