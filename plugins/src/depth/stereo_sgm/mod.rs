@@ -132,7 +132,7 @@ pub struct ScaledWindow {
 /// length keeps both.
 pub fn scaled_window(p: &StereoSgmParams, fx_px: f64) -> ScaledWindow {
     let given = ScaledWindow { radius: p.radius as usize, levels: p.levels as usize };
-    if p.focal_reference_px <= 0.0 || !(fx_px > 0.0) {
+    if p.focal_reference_px <= 0.0 || fx_px.is_nan() || fx_px <= 0.0 {
         return given;
     }
     // Never below the reference: a smaller window averages fewer pixels of sensor noise (the
