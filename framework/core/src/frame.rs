@@ -93,7 +93,12 @@ impl Masks {
 
     /// The union of all masks, or `None` when there are none.
     pub fn union(&self) -> Option<Mask> {
-        let mut it = self.0.values();
+        self.union_except(&[])
+    }
+
+    /// The union of the masks not named in `skip`, or `None` when there are none.
+    pub fn union_except(&self, skip: &[&str]) -> Option<Mask> {
+        let mut it = self.0.iter().filter(|(name, _)| !skip.contains(&name.as_str())).map(|(_, m)| m);
         let mut out = it.next()?.clone();
         for m in it {
             for (o, v) in out.data_mut().iter_mut().zip(m.data()) {

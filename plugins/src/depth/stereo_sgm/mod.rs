@@ -94,6 +94,10 @@ capsule_slam_framework::plugin_params! {
         pub speckle_px: u32 = 50; unit = "px"; range = 0.0..=100000.0;
         /// A pixel with a channel at or above this in either view was clipped: no match there.
         pub saturation: u32 = 250; unit = "8-bit"; range = 1.0..=256.0;
+        /// Whether the pixels of either view's `specular` mask (the `reflection` stage's
+        /// highlights) get no match. false: the windows read the inpainted images there, as
+        /// the rest of each window's texture carries the match (clipped pixels never match).
+        pub mask_specular: bool = true; unit = "-";
         /// σ of a matched disparity, the depth's σ is `z² σ_d / (f b)`: the RMS of this
         /// matcher's disparity error over every matched pixel, 0.46–0.52 px on the 5 mm phantom
         /// pairs of presets 1, 4, 5 (`docs/results/stereo.md`, "The depth's σ"). The robust σ
@@ -240,7 +244,8 @@ impl StereoSgm {
         };
         let sat = self.params.saturation.min(256) as u16;
         let clipped = |img: &capsule_slam_framework::Rgb8, x: usize, y: usize| img.pixel(x, y).iter().any(|c| u16::from(*c) >= sat);
-        let (masks, right_masks) = (frame.masks.union(), frame.right_masks.union());
+        let skip: &[&str] = if self.params.mask_specular { &[] } else { &[capsule_slam_framework::frame::MASK_SPECULAR] };
+        let (masks, right_masks) = (frame.masks.union_except(skip), frame.right_masks.union_except(skip));
         if let Some(m) = right_masks.as_ref().filter(|m| m.size() != right.size()) {
             let ((mw, mh), (w, h)) = (m.size(), right.size());
             return Err(StageError::invalid_input(format!(

@@ -113,9 +113,18 @@ fn the_right_views_masks_leave_no_depth_where_they_hide_the_match() {
     let with_depth = |d: &capsule_slam_framework::DepthMap| hidden.iter().filter(|&&(x, y)| d.at(x, y) > 0.0).count();
     let (open, _) = sgm.depth(&f).unwrap();
     assert!(with_depth(&open) as f64 > 0.8 * hidden.len() as f64, "unmasked, {} of {} have depth", with_depth(&open), hidden.len());
-    f.right_masks.insert(capsule_slam_framework::frame::MASK_SPECULAR, disc);
+    f.right_masks.insert(capsule_slam_framework::frame::MASK_SPECULAR, disc.clone());
     let (masked, _) = sgm.depth(&f).unwrap();
     assert_eq!(with_depth(&masked), 0, "masked in the right view, none has depth");
+    // With `mask_specular = false` a highlight mask leaves the match to the windows; any other
+    // mask still hides it.
+    let through = StereoSgm::build(StereoSgmParams { mask_specular: false, ..StereoSgmParams::default() }, &BuildEnv::new(rig.clone(), None)).unwrap();
+    let (matched, _) = through.depth(&f).unwrap();
+    assert!(with_depth(&matched) as f64 > 0.8 * hidden.len() as f64, "highlights matched through, {} of {} have depth", with_depth(&matched), hidden.len());
+    let mut g = f.clone();
+    g.right_masks.insert("other", disc);
+    let (hidden_again, _) = through.depth(&g).unwrap();
+    assert_eq!(with_depth(&hidden_again), 0, "a mask other than the highlights still hides the match");
     f.right_masks.insert("other", capsule_slam_framework::Mask::new(7, 5));
     let err = sgm.depth(&f).err().unwrap().to_string();
     assert!(err.contains("right view's masks are 7×5") && err.contains("frame 5"), "{err}");
