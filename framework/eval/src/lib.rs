@@ -115,14 +115,17 @@ pub fn umeyama_poses(src: &[Iso3], dst: &[Iso3], with_scale: bool) -> Option<Sim
         return None;
     }
     let scale = if with_scale { umeyama(&s, &d, true).map(|a| a.scale).filter(|s| s.is_finite() && *s > 0.0)? } else { 1.0 };
-    let frame = |p: &Iso3, reach: f64| -> [Point3<f64>; 4] {
-        let c = Point3::from(p.translation.vector);
-        [c, c + p.rotation * nalgebra::Vector3::x() * reach, c + p.rotation * nalgebra::Vector3::y() * reach, c + p.rotation * nalgebra::Vector3::z() * reach]
-    };
-    let fs: Vec<Point3<f64>> = src.iter().flat_map(|p| frame(p, AXIS_REACH_M / scale)).collect();
-    let fd: Vec<Point3<f64>> = dst.iter().flat_map(|p| frame(p, AXIS_REACH_M)).collect();
+    let fs: Vec<Point3<f64>> = src.iter().flat_map(|p| pose_points(p, AXIS_REACH_M / scale)).collect();
+    let fd: Vec<Point3<f64>> = dst.iter().flat_map(|p| pose_points(p, AXIS_REACH_M)).collect();
     let rigid = umeyama(&fs.iter().map(|p| Point3::from(p.coords * scale)).collect::<Vec<_>>(), &fd, false)?;
     Some(Similarity { scale, rotation: rigid.rotation, translation: rigid.translation })
+}
+
+/// A pose as points: its centre and the points `reach_m` along its three axes, so that an
+/// alignment of them fits the orientation too.
+fn pose_points(p: &Iso3, reach_m: f64) -> [Point3<f64>; 4] {
+    let c = Point3::from(p.translation.vector);
+    [c, c + p.rotation * nalgebra::Vector3::x() * reach_m, c + p.rotation * nalgebra::Vector3::y() * reach_m, c + p.rotation * nalgebra::Vector3::z() * reach_m]
 }
 
 /// The square roots of the two largest principal variances of `points`, metres: how far they
@@ -162,12 +165,8 @@ pub fn align_recent(est: &[StampedPose], gt: &[StampedPose], tolerance_s: f64, g
         return None;
     }
     let est_reach_m = global_scale.map_or(reach_m, |s| reach_m / s);
-    let frame = |p: &Iso3, reach: f64| -> [Point3<f64>; 4] {
-        let c = Point3::from(p.translation.vector);
-        [c, c + p.rotation * nalgebra::Vector3::x() * reach, c + p.rotation * nalgebra::Vector3::y() * reach, c + p.rotation * nalgebra::Vector3::z() * reach]
-    };
-    let src: Vec<Point3<f64>> = recent.iter().flat_map(|(e, _)| frame(&e.t_world_cam, est_reach_m)).collect();
-    let dst: Vec<Point3<f64>> = recent.iter().flat_map(|(_, g)| frame(&g.t_world_cam, reach_m)).collect();
+    let src: Vec<Point3<f64>> = recent.iter().flat_map(|(e, _)| pose_points(&e.t_world_cam, est_reach_m)).collect();
+    let dst: Vec<Point3<f64>> = recent.iter().flat_map(|(_, g)| pose_points(&g.t_world_cam, reach_m)).collect();
     umeyama(&src, &dst, global_scale.is_some())
 }
 
