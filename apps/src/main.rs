@@ -21,6 +21,13 @@ mod stages;
 
 use clap::{Parser, Subcommand};
 
+/// jemalloc, not the system's: a frame's large buffers (cost volumes, pyramids, residuals) are
+/// freed and asked for again every frame, and glibc's allocator hands their pages back to the
+/// kernel and faults them in again (`docs/results/speed.md`, "The allocator").
+#[cfg(not(target_env = "msvc"))]
+#[global_allocator]
+static ALLOC: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
 /// Dense non-rigid RGB-D SLAM for endoscopic capsule robots (after Turan et al. 2017).
 #[derive(Parser, Debug)]
 #[command(name = "capsule-slam", version, about)]

@@ -33,6 +33,7 @@ fn graph(n: usize) -> Graph {
 }
 
 fn solve(c: &mut Criterion) {
+    capsule_slam_benches::link();
     let mut group = c.benchmark_group("deformation-graph-solve");
     group.sample_size(10);
     for n in [64usize, 256, 1024, 4096] {

@@ -16,6 +16,7 @@ use capsule_slam_plugins::track::nonrigid::fixture::SolverCase;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 
 fn solve(c: &mut Criterion) {
+    capsule_slam_benches::link();
     let mut group = c.benchmark_group("nonrigid-warp-solve");
     group.sample_size(10);
     for model in [NodeModel::Affine, NodeModel::Twist] {

@@ -13,6 +13,7 @@ use capsule_slam_plugins::depth::stereo_sgm::{StereoSgm, StereoSgmParams};
 use criterion::{Criterion, criterion_group, criterion_main};
 
 fn stereo(c: &mut Criterion) {
+    capsule_slam_benches::link();
     let spec = PhantomSpec { frames: 20, size: SizePreset::Capsule320, stereo_baseline_mm: Some(5.0), ..PhantomSpec::preset(1) };
     let p = Phantom::new(spec).unwrap_or_else(|e| panic!("phantom: {e}"));
     let rig = Phantom::camera_file_for(&p.spec).rig();

@@ -5,7 +5,13 @@ use capsule_slam_framework::camera::Rig;
 use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 
-/// Keeps the plugin registrations linked into every bench binary.
+/// The app's allocator (`apps/src/main.rs`), so that a bench times what a run does. Every bench
+/// binary calls [`link`], which keeps this crate, and so the allocator, linked.
+#[cfg(not(target_env = "msvc"))]
+#[global_allocator]
+static ALLOC: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
+/// Keeps the plugin registrations (and the allocator) linked into every bench binary.
 pub fn link() {
     capsule_slam_plugins::link();
 }
