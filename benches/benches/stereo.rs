@@ -1,6 +1,7 @@
 //! Stereo depth: `stereo-sgm` on a 5 mm phantom pair (preset 1, frame 5) at 320×320 (issue
 //! 19's speed goal: ≤ 15 ms per frame on 2 cores, moonshot ≤ 8 ms), and the rectification of
-//! both views alone.
+//! both views alone. `CAPSULE_SLAM_BENCH_STEREO_PARAMS` (TOML, e.g. `"passes = 1"`) times
+//! other parameters than the defaults (`docs/results/stereo.md`, "Speed against coverage").
 
 use capsule_slam_framework::context::StageReport;
 use capsule_slam_framework::frame::{CameraFrame, Masks, Photometry, Views};
@@ -29,7 +30,15 @@ fn stereo(c: &mut Criterion) {
         photometry: Photometry::default(),
         sample_share: None,
     };
-    let mut est = StereoSgm::build(StereoSgmParams::default(), &BuildEnv::new(rig.clone(), None)).unwrap_or_else(|e| panic!("{e}"));
+    let params = match std::env::var("CAPSULE_SLAM_BENCH_STEREO_PARAMS") {
+        Ok(text) => {
+            let p: StereoSgmParams = toml::from_str(&text).unwrap_or_else(|e| panic!("CAPSULE_SLAM_BENCH_STEREO_PARAMS: {e}"));
+            eprintln!("stereo-sgm with CAPSULE_SLAM_BENCH_STEREO_PARAMS: {text:?}");
+            p
+        }
+        Err(_) => StereoSgmParams::default(),
+    };
+    let mut est = StereoSgm::build(params, &BuildEnv::new(rig.clone(), None)).unwrap_or_else(|e| panic!("{e}"));
     let mut g = c.benchmark_group("stereo");
     g.sample_size(10);
     g.bench_function("stereo-sgm/320x320", |b| {
