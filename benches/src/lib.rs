@@ -6,7 +6,8 @@ use capsule_slam_framework::frame::RgbdFrame;
 use capsule_slam_phantom::{Phantom, PhantomSpec, SizePreset};
 
 /// The app's allocator (`apps/src/main.rs`), so that a bench times what a run does. Every bench
-/// binary calls [`link`], which keeps this crate, and so the allocator, linked.
+/// binary uses this crate (the three that need nothing else from it call [`link`]), which
+/// links the allocator.
 #[cfg(not(target_env = "msvc"))]
 #[global_allocator]
 static ALLOC: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
