@@ -5,7 +5,6 @@
 pub mod ed_graph;
 pub mod maps;
 pub mod masks;
-pub mod pixel;
 pub mod pyramid;
 pub mod sparse_llt;
 

@@ -18,8 +18,6 @@
 
 use rayon::prelude::*;
 
-use crate::common::pixel::round_px;
-
 use super::pyramid::{self, mirror};
 use super::sgm::{self, INVALID, SgmSettings};
 use super::zncc::{self, Plane};
@@ -109,7 +107,7 @@ fn checked(a: &[f32], b: &[f32], w: usize, tol: f32, sign: f32) -> Vec<f32> {
             if *d <= INVALID || x < 0.0 || x > (w - 1) as f32 {
                 return INVALID;
             }
-            let q = p - p % w + round_px(x);
+            let q = p - p % w + x.round() as usize;
             if b[q] > INVALID && (b[q] - d).abs() <= tol { *d } else { INVALID }
         })
         .collect()

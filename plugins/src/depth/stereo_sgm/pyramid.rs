@@ -4,8 +4,6 @@
 
 use rayon::prelude::*;
 
-use crate::common::pixel::floor_px;
-
 use super::sgm::INVALID;
 use super::zncc::Plane;
 
@@ -103,7 +101,7 @@ pub fn warp_right(right: &Plane, prior: &[f32], shift_px: f32) -> Plane {
             if prior[p] <= INVALID || u < 0.0 || u > (w - 1) as f32 || w < 2 {
                 return (0.0, true);
             }
-            let x0 = floor_px(u).min(w - 2);
+            let x0 = (u.floor() as usize).min(w - 2);
             let f = u - x0 as f32;
             let (a, b) = (y * w + x0, y * w + x0 + 1);
             ((1.0 - f) * right.gray[a] + f * right.gray[b], right.invalid[a] || right.invalid[b])

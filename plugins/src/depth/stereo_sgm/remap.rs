@@ -9,8 +9,6 @@ use capsule_slam_framework::image::{DepthMap, Rgb8};
 use capsule_slam_framework::stereo::rectify::{Rectification, Side};
 use rayon::prelude::*;
 
-use crate::common::pixel::{floor_px, round_px};
-
 use super::sgm::INVALID;
 
 /// The maps of one rig.
@@ -77,7 +75,7 @@ impl Rectifier {
         gray.par_chunks_mut(w).zip(invalid.par_chunks_mut(w)).zip(src.par_chunks(w)).for_each(|((g_row, i_row), s_row)| {
             for ((g_out, i_out), s) in g_row.iter_mut().zip(i_row.iter_mut()).zip(s_row) {
                 let Some((u, v)) = *s else { continue };
-                let (x0, y0) = (floor_px(u), floor_px(v));
+                let (x0, y0) = (u.floor().max(0.0) as usize, v.floor().max(0.0) as usize);
                 let (x1, y1) = ((x0 + 1).min(iw - 1), (y0 + 1).min(ih - 1));
                 let (fx, fy) = ((u - x0 as f32).clamp(0.0, 1.0), (v - y0 as f32).clamp(0.0, 1.0));
                 let lum = |x: usize, y: usize| {
@@ -85,7 +83,7 @@ impl Rectifier {
                     0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2])
                 };
                 *g_out = (1.0 - fy) * ((1.0 - fx) * lum(x0, y0) + fx * lum(x1, y0)) + fy * ((1.0 - fx) * lum(x0, y1) + fx * lum(x1, y1));
-                let (nx, ny) = (round_px(u).min(iw - 1), round_px(v).min(ih - 1));
+                let (nx, ny) = ((u.round().max(0.0) as usize).min(iw - 1), (v.round().max(0.0) as usize).min(ih - 1));
                 *i_out = blocked(nx, ny);
             }
         });
@@ -104,7 +102,7 @@ impl Rectifier {
             .par_iter()
             .map(|b| {
                 let Some((u, v)) = *b else { return 0.0 };
-                let (x0, y0) = (floor_px(u), floor_px(v));
+                let (x0, y0) = (u.floor().max(0.0) as usize, v.floor().max(0.0) as usize);
                 let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
                 let four = [at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1)];
                 let (lo, hi) = four.iter().fold((f32::MAX, f32::MIN), |(a, b), d| (a.min(*d), b.max(*d)));
@@ -112,7 +110,7 @@ impl Rectifier {
                     let (fx, fy) = ((u - x0 as f32).clamp(0.0, 1.0), (v - y0 as f32).clamp(0.0, 1.0));
                     (1.0 - fy) * ((1.0 - fx) * four[0] + fx * four[1]) + fy * ((1.0 - fx) * four[2] + fx * four[3])
                 } else {
-                    at(round_px(u).min(w - 1), round_px(v).min(h - 1))
+                    at((u.round().max(0.0) as usize).min(w - 1), (v.round().max(0.0) as usize).min(h - 1))
                 };
                 self.rect.left_depth_m(f64::from(u), f64::from(v), f64::from(d)).map_or(0.0, |z| z as f32)
             })

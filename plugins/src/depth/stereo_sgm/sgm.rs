@@ -287,7 +287,7 @@ pub fn disparities(total: &[u16], left_invalid: &[bool], right_invalid: &[bool],
             if d < 0.0 || xr < 0.0 {
                 return INVALID;
             }
-            let q = p - (p % w) + crate::common::pixel::round_px(xr);
+            let q = p - (p % w) + xr.round() as usize;
             if right[q] >= 0.0 && (right[q] - d).abs() <= s.lr_max_px { d } else { INVALID }
         })
         .collect()
