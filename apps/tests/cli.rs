@@ -577,3 +577,38 @@ fn eval_splits_the_live_surface_by_the_last_view_with_the_sequences_camera_and_n
     let (ok, _, err) = eval(&bare.join(last));
     assert!(!ok && err.contains(&s(&bare.join("camera.toml"))), "{err}");
 }
+
+/// `bench --rounds N`: each stage's figure is the median of the N runs' means it lists, and the
+/// runs, from freshly built pipelines, end with the same map and ATE (the same work timed).
+#[test]
+fn bench_rounds_report_the_median_of_identical_runs() {
+    let cache = tempfile::tempdir().unwrap();
+    let run = |rounds: &str| {
+        let o = bin()
+            .env("CAPSULE_SLAM_CACHE", cache.path())
+            .args(["bench", "--sizes", "naneye", "--frames", "6", "--rounds", rounds, "--set", "pipeline.depth=sensor"])
+            .output()
+            .expect("run capsule-slam");
+        (o.status.success(), String::from_utf8_lossy(&o.stdout).into_owned(), String::from_utf8_lossy(&o.stderr).into_owned())
+    };
+    let (ok, out, err) = run("3");
+    assert!(ok, "{err}");
+    assert!(out.contains("mean ms (median of 3 runs)"), "{out}");
+    let rows: Vec<Vec<&str>> = out.lines().filter(|l| l.starts_with("| 250×250 | 6 |")).map(|l| l.split('|').map(str::trim).collect()).collect();
+    assert_eq!(rows.len(), 6, "one row per stage: {out}");
+    for r in &rows {
+        // "", size, frames, stage, median, p95, each run's mean, ""
+        let median: f64 = r[4].parse().unwrap();
+        let mut each: Vec<f64> = r[6].split(" / ").map(|v| v.parse().unwrap()).collect();
+        assert_eq!(each.len(), 3, "{r:?}");
+        each.sort_by(f64::total_cmp);
+        assert_eq!(format!("{median:.2}"), format!("{:.2}", each[1]), "the median of {r:?}");
+    }
+    assert!(rows.iter().any(|r| r[3] == "total") && rows.iter().all(|r| r[4].parse::<f64>().unwrap() >= 0.0), "{out}");
+    assert!(out.contains("the 3 runs ended with the same map size and ATE to the bit"), "{out}\n{err}");
+    // One round keeps the plain table; zero rounds is refused, naming the flag.
+    let (ok, out, _) = run("1");
+    assert!(ok && out.contains("| size | frames | stage | mean ms | p95 ms |") && !out.contains("median"), "{out}");
+    let (ok, _, err) = run("0");
+    assert!(!ok && err.contains("--rounds"), "{err}");
+}
