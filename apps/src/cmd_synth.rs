@@ -35,6 +35,10 @@ pub struct SynthArgs {
     /// Peristaltic wall motion amplitude, mm (0 = rigid).
     #[arg(long = "deform", value_name = "MM", default_value_t = 0.0)]
     pub deform_mm: f64,
+    /// The wall starts to move at this frame (still before it; the wave grows to its amplitude
+    /// over a second): a still wall that starts moving, for the non-rigid tracker's detection.
+    #[arg(long = "deform-onset", value_name = "FRAME", default_value_t = 0)]
+    pub deform_onset_frame: usize,
     /// With wall motion, also write the true surface at every N-th frame
     /// (`gt_surface_NNNNNN.ply`; the first, middle and last frame always get one), for the live
     /// surface error of `run` and `eval`.
@@ -97,6 +101,7 @@ impl SynthArgs {
         s.size = SizePreset::parse(&self.size).ok_or_else(|| anyhow!("--size {}: use naneye, 320, voyager, potensic or pal", self.size))?;
         s.seed = self.seed;
         s.deform_mm = self.deform_mm;
+        s.deform_onset_frame = self.deform_onset_frame;
         s.surface_every = self.surface_every;
         s.depth_noise = self.depth_noise;
         if let Some(v) = self.specular {

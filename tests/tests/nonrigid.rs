@@ -98,3 +98,44 @@ fn with_fill_in_the_young_map_is_warped_from_the_second_frame() {
     assert_eq!(on, Some(1), "with fill-in the first judged solve is at {on:?}");
     assert!(off.is_none_or(|f| f >= 8), "without fill-in the first judged solve is at {off:?}: the prediction is not that young");
 }
+
+/// The first frame from `from` on whose warp was kept (`warp_max_mm` written), and the frames
+/// whose probe a risen rigid residual called.
+fn first_kept_warp_and_called(out: &std::path::Path, from: usize) -> (Option<usize>, Vec<usize>) {
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let max = header.iter().position(|h| *h == "warp_max_mm").unwrap();
+    let kept = csv.lines().skip(1).enumerate().skip(from).find(|(_, l)| l.split(',').nth(max).is_some_and(|v| !v.is_empty())).map(|(i, _)| i);
+    let counters = std::fs::read_to_string(out.join("counters.jsonl")).unwrap();
+    let called = counters
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| serde_json::from_str::<serde_json::Value>(l).unwrap().get("nonrigid.nonrigid_probe_called").is_some())
+        .map(|(i, _)| i)
+        .collect();
+    (kept, called)
+}
+
+#[test]
+fn a_still_wall_that_starts_to_move_is_caught_by_its_rigid_residual_between_probes() {
+    // Preset 2 at NanEye size: still until frame 80, then a 2 mm wave grows over a second. The
+    // wall is judged clearly still by frame 51 and probed at 59, 65, 81 (the interval doubling
+    // from 8 to 32), the probe at 81 too early to see the young wave; the next would be at 113.
+    const ONSET: usize = 80;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("onset");
+    let spec = PhantomSpec { frames: 120, size: SizePreset::NanEye, deform_mm: 2.0, deform_onset_frame: ONSET, surface_every: 119, ..PhantomSpec::preset(2) };
+    write_sequence(&Phantom::new(spec).unwrap(), &data, &|_| {}).unwrap();
+    let opts = RunOptions::default();
+    // The default: the rigid residual rises 1.5× its still mean five frames in (measured
+    // 85), the next frame probes, and the warp is kept from frame 90.
+    run_with(&data, &tmp.path().join("default"), &["pipeline.depth=sensor"], &opts);
+    let (kept, called) = first_kept_warp_and_called(&tmp.path().join("default"), ONSET);
+    assert!(kept.is_some_and(|k| k <= ONSET + 12), "the moving wall's first kept warp is at {kept:?}, onset {ONSET}");
+    assert!(called.iter().any(|c| (ONSET..=ONSET + 12).contains(c)), "no probe called by the residual after the onset: {called:?}");
+    // The doubling alone waits for the next scheduled probe (measured: the warp from 115).
+    run_with(&data, &tmp.path().join("interval"), &["pipeline.depth=sensor", "plugins.nonrigid.still_probe_residual_rise=0"], &opts);
+    let (alone, called) = first_kept_warp_and_called(&tmp.path().join("interval"), ONSET);
+    assert!(called.is_empty());
+    assert!(alone.is_none_or(|a| a > ONSET + 20), "without the residual's call the warp came at {alone:?}");
+}

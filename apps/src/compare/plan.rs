@@ -59,6 +59,8 @@ pub struct SynthSpec {
     pub frames: Option<usize>,
     /// Peristaltic wave amplitude, mm (default 0: rigid).
     pub deform: Option<f64>,
+    /// The frame at which the wave starts (default 0: from the start).
+    pub deform_onset: Option<usize>,
     /// Seed of texture and noise (default 1).
     pub seed: Option<u64>,
     /// Walks along the path (default 1).
@@ -100,6 +102,7 @@ impl SynthSpec {
         let mut spec = capsule_slam_phantom::PhantomSpec::preset(self.preset);
         spec.frames = self.frames.unwrap_or(spec.frames);
         spec.deform_mm = self.deform.unwrap_or(spec.deform_mm);
+        spec.deform_onset_frame = self.deform_onset.unwrap_or(spec.deform_onset_frame);
         spec.seed = self.seed.unwrap_or(spec.seed);
         spec.repeat = self.repeat.unwrap_or(spec.repeat);
         spec.stereo_baseline_mm = self.stereo.or(spec.stereo_baseline_mm);
@@ -116,6 +119,9 @@ impl SynthSpec {
         let mut name = format!("phantom-p{}-{}f-seed{}", s.preset, s.frames, s.seed);
         if s.deform_mm != 0.0 {
             name += &format!("-deform{}", s.deform_mm);
+        }
+        if s.deform_onset_frame > 0 {
+            name += &format!("-from{}", s.deform_onset_frame);
         }
         if s.repeat > 1 {
             name += &format!("-x{}", s.repeat);

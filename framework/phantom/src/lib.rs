@@ -87,6 +87,10 @@ pub struct PhantomSpec {
     pub seed: u64,
     /// Amplitude of the peristaltic wall motion, mm (0 = rigid).
     pub deform_mm: f64,
+    /// The frame at which the wall starts to move (it grows to `deform_mm` over
+    /// [`shape::WAVE_ONSET_RAMP_S`]); 0: it moves from the first frame.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub deform_onset_frame: usize,
     /// Scale of the specular highlights (0 = none, 1 = wet tissue).
     pub specular: f64,
     /// Scale of the sensor noise (0 = none, 1 = a good capsule sensor).
@@ -123,6 +127,10 @@ fn is_one_walk(r: &usize) -> bool {
     *r == 1
 }
 
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
 impl PhantomSpec {
     /// Frames of the sequence: `frames × repeat`.
     pub fn frame_count(&self) -> usize {
@@ -149,6 +157,7 @@ impl PhantomSpec {
             size: SizePreset::default(),
             seed: 1,
             deform_mm: 0.0,
+            deform_onset_frame: 0,
             specular: if preset == 7 { 2.5 } else { 1.0 },
             noise: if preset == 6 { 5.0 } else { 1.0 },
             texture: true,
@@ -176,6 +185,9 @@ impl PhantomSpec {
         }
         if !(self.deform_mm.is_finite() && (0.0..=8.0).contains(&self.deform_mm)) {
             out.push(("deform_mm", format!("{} must be in [0, 8] mm", self.deform_mm)));
+        }
+        if self.deform_onset_frame > 0 && self.deform_mm == 0.0 {
+            out.push(("deform_onset_frame", format!("{}: an onset needs a wave (deform_mm > 0)", self.deform_onset_frame)));
         }
         for (k, v) in [("specular", self.specular), ("noise", self.noise)] {
             if !(v.is_finite() && (0.0..=20.0).contains(&v)) {
@@ -240,7 +252,8 @@ impl Phantom {
         if !problems.is_empty() {
             return Err(problems.into_iter().map(|(k, m)| format!("{k}: {m}")).collect::<Vec<_>>().join("; "));
         }
-        let shape = StomachShape { wave_m: spec.deform_mm * 1e-3, ..StomachShape::default() };
+        let wave_onset_s = spec.deform_onset_frame as f64 / spec.frame_rate_hz;
+        let shape = StomachShape { wave_m: spec.deform_mm * 1e-3, wave_onset_s, ..StomachShape::default() };
         let camera = Self::camera_file_for(&spec).camera();
         let light = LightModel {
             gain: 0.6,

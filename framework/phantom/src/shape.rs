@@ -35,7 +35,14 @@ pub struct StomachShape {
     pub wave_length_m: f64,
     /// Period T of the wave.
     pub wave_period_s: f64,
+    /// When the wave starts, seconds: before it the wall is still, after it the amplitude grows
+    /// to D over [`WAVE_ONSET_RAMP_S`] (a smoothstep). 0: the wave runs from the start, at D.
+    pub wave_onset_s: f64,
 }
+
+/// How long a wave that starts late ([`StomachShape::wave_onset_s`]) takes to grow from 0 to
+/// its full amplitude, seconds: a contraction sets in over about a second.
+pub const WAVE_ONSET_RAMP_S: f64 = 1.0;
 
 impl Default for StomachShape {
     /// A 14 cm long, 3.2 cm radius stomach with 1.2 mm folds, rigid.
@@ -51,6 +58,7 @@ impl Default for StomachShape {
             wave_m: 0.0,
             wave_length_m: 0.05,
             wave_period_s: 6.0,
+            wave_onset_s: 0.0,
         }
     }
 }
@@ -115,14 +123,22 @@ impl StomachShape {
     }
 
     /// The radial displacement of the peristaltic wave, `D sin(2π (s/λ − t/T))`, fading at the
-    /// ends.
+    /// ends; a late wave's amplitude grows from its onset ([`StomachShape::wave_onset_s`]).
     pub fn wave(&self, phi: f64, t_s: f64) -> f64 {
         if self.wave_m == 0.0 {
             return 0.0;
         }
         let u = (phi / self.half_angle_rad).clamp(-1.0, 1.0);
         let s = self.arc_radius_m * phi;
-        self.wave_m * (std::f64::consts::TAU * (s / self.wave_length_m - t_s / self.wave_period_s)).sin() * (1.0 - u * u).powi(2)
+        let wave = self.wave_m * (std::f64::consts::TAU * (s / self.wave_length_m - t_s / self.wave_period_s)).sin() * (1.0 - u * u).powi(2);
+        if self.wave_onset_s > 0.0 { wave * self.onset_gain(t_s) } else { wave }
+    }
+
+    /// The share of the wave's amplitude at time `t_s`: 0 before the onset, a smoothstep to 1
+    /// over [`WAVE_ONSET_RAMP_S`] after it.
+    pub fn onset_gain(&self, t_s: f64) -> f64 {
+        let x = ((t_s - self.wave_onset_s) / WAVE_ONSET_RAMP_S).clamp(0.0, 1.0);
+        x * x * (3.0 - 2.0 * x)
     }
 
     /// The rest-shape wall point at (φ, θ) (no wave): where a wall point's texture lives.
@@ -224,6 +240,29 @@ mod tests {
                 assert!(s.implicit(&p, 1.3).abs() < 1e-9, "φ {phi} θ {theta}: {}", s.implicit(&p, 1.3));
             }
         }
+    }
+
+    #[test]
+    fn a_late_wave_is_still_before_its_onset_and_whole_a_ramp_after_it() {
+        let from_start = StomachShape { wave_m: 0.002, ..StomachShape::default() };
+        let late = StomachShape { wave_onset_s: 5.0, ..from_start.clone() };
+        let (phi, theta) = (0.1, 0.4);
+        let rest = late.rest_radius(phi, theta);
+        for k in 0..50 {
+            let t = 5.0 * k as f64 / 50.0;
+            assert_eq!(late.radius(phi, theta, t), rest, "still at {t} s");
+        }
+        // Growing through the ramp, whole after it: the wave that ran from the start.
+        let share = |t: f64| late.wave(phi, t) / from_start.wave(phi, t);
+        assert!((share(5.0 + 0.5 * WAVE_ONSET_RAMP_S) - 0.5).abs() < 1e-12, "half-way up the smoothstep");
+        assert!(share(5.0 + 0.1 * WAVE_ONSET_RAMP_S) < 0.05);
+        for k in 0..50 {
+            let t = 5.0 + WAVE_ONSET_RAMP_S + 0.13 * k as f64;
+            assert_eq!(late.wave(phi, t), from_start.wave(phi, t), "at {t} s");
+        }
+        // The surface stays on the implicit function through the onset.
+        let p = late.surface_point(phi, theta, 5.3);
+        assert!(late.implicit(&p, 5.3).abs() < 1e-9);
     }
 
     #[test]

@@ -25,7 +25,10 @@
 //!    falls by `min_rms_gain` on average over the last `gain_window_frames`
 //!    solves and its χ² by more than `min_evidence` per unknown (Akaike): a still wall is left
 //!    still (counter `nonrigid_still`); while it is clearly still, the warp is solved on every
-//!    `still_probe_every_frames`-th frame only (counter `nonrigid_probe_skipped`);
+//!    `still_probe_every_frames`-th frame only (counter `nonrigid_probe_skipped`), the interval
+//!    doubling up to `still_probe_max_every_frames` while the probes find it still, and a rigid
+//!    residual risen by `still_probe_residual_rise` calls the next probe at once (counter
+//!    `nonrigid_probe_called`);
 //! 5. when the joint solve would move the camera farther from the rigid start than
 //!    `max_camera_step_m`/`_rad`, the nodes are solved again with the camera held there
 //!    (`hold_camera_on_step`, counter `nonrigid_camera_held`: the map keeps following the wall);
@@ -135,7 +138,8 @@ impl Tracker for Nonrigid {
     fn track(&mut self, frame: &RgbdFrame, model: Option<&ModelView>, t_world_prev: &Iso3, ctx: &mut Context) -> Result<TrackResult, StageError> {
         let warps = frame.depth_source == DepthSource::Measured || self.params.warp_estimated_depth;
         let warps = warps && model.is_some() && !self.probe.skips(self.params.still_probe_every_frames);
-        if self.probe.skipped > 0 {
+        let probe_skipped = self.probe.skipped > 0;
+        if probe_skipped {
             ctx.count("nonrigid_probe_skipped", 1.0);
         }
         // The model points read the previous frame's intensity, which registering replaces.
@@ -156,6 +160,13 @@ impl Tracker for Nonrigid {
         let (rigid, ready) = self.start(frame, model, t_world_prev, stop, warps.then_some(&points[..]), ctx);
         // Wall time of the rigid start and the problem built beside it.
         ctx.count("ms_start", clock_start.elapsed().as_secs_f64() * 1e3);
+        if probe_skipped
+            && let Ok(r) = &rigid
+            && r.status == TrackStatus::Tracked
+            && self.probe.observe(r.residual_rms, self.params.still_probe_residual_rise)
+        {
+            ctx.count("nonrigid_probe_called", 1.0);
+        }
         let (rigid, ready) = match (rigid, ready) {
             (Ok(rigid), Some(ready)) if rigid.status != TrackStatus::Lost => (rigid, ready),
             (rigid, ready) => {
@@ -375,7 +386,8 @@ impl Nonrigid {
                 // Clearly still: a window of still verdicts, their mean gain and this one's below
                 // a quarter of the threshold (a probe that is not clearly still ends the probing).
                 let clear = 0.25 * p.min_rms_gain;
-                self.probe.still = self.probe.streak >= p.gain_window_frames && judged < clear && gains.icp < clear;
+                let still = self.probe.streak >= p.gain_window_frames && judged < clear && gains.icp < clear;
+                self.probe.verdict(still, (p.still_probe_every_frames, p.still_probe_max_every_frames));
                 ctx.count("nonrigid_still", 1.0);
                 gains.count(ctx);
                 Ok(None)

@@ -193,6 +193,21 @@ capsule_slam_framework::plugin_params! {
         /// without the warp solve's cost. A probe whose own gain reaches `min_rms_gain`, or any
         /// kept warp or fallback, ends it. 1: solve every frame.
         pub still_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
+        /// While the wall stays clearly still, each probe that finds it so doubles the interval,
+        /// from `still_probe_every_frames` up to this many frames: a still wall's cost falls
+        /// toward `icp-rgb`'s (rigid preset 2, 320×320: 30 probes in frames 60–299 at 8, 10 with
+        /// the doubling; each about 10 ms of tracking, `docs/results/speed.md`). A wall that
+        /// starts moving is caught by `still_probe_residual_rise` before the interval ends.
+        /// Equal to `still_probe_every_frames`: a fixed interval.
+        pub still_probe_max_every_frames: u32 = 32; unit = "frames"; range = 1.0..=1000.0;
+        /// Between probes, a frame whose rigid start's point-to-plane RMS residual exceeds this
+        /// factor times its running mean over the still frames skipped before it (after 4 of
+        /// them) is probed on the next frame, and the interval returns to
+        /// `still_probe_every_frames`: a wall that starts to move raises the rigid residual at
+        /// once (preset 2 with a 2 mm wave from frame 150, `synth --deform-onset 150`: 1.05×
+        /// two frames in, 1.8× four frames in), a still wall's stays within a few per cent.
+        /// 0: off (the interval alone).
+        pub still_probe_residual_rise: f64 = 1.5; unit = "-"; range = 0.0..=100.0;
         /// While the wall is clearly moving (`camera = "joint"`; it becomes so once the last
         /// `gain_window_frames` judged solves all kept their warp with a mean gain of at least twice
         /// `min_rms_gain`, and stays so while every judged solve keeps its warp), the
@@ -228,6 +243,12 @@ impl NonrigidParams {
             return Err(StageError::invalid_input(format!("nonrigid: rigid.{field}: {problem}")));
         }
         crate::common::ordered("min_depth_m", f64::from(self.rigid.min_depth_m), "max_depth_m", f64::from(self.rigid.max_depth_m))?;
+        if self.still_probe_max_every_frames < self.still_probe_every_frames {
+            return Err(StageError::invalid_input(format!(
+                "nonrigid: still_probe_max_every_frames ({}) must be at least still_probe_every_frames ({}); equal gives a fixed interval",
+                self.still_probe_max_every_frames, self.still_probe_every_frames
+            )));
+        }
         if self.reach_m < self.node_spacing_m {
             return Err(StageError::invalid_input(format!(
                 "nonrigid: reach_m ({}) must be at least node_spacing_m ({}), or points between nodes bind none",

@@ -460,6 +460,70 @@ fn a_clearly_still_wall_is_solved_on_every_nth_frame_only() {
     assert!((0..10).all(|_| !probe.skips(1)));
 }
 
+/// The frames of the next `n` that probe (do not skip).
+fn probes_within(probe: &mut super::Probe, first: u32, n: usize) -> Vec<usize> {
+    (0..n).filter(|_| !probe.skips(first)).collect()
+}
+
+#[test]
+fn the_still_probe_interval_doubles_while_the_wall_stays_still_and_resets_when_it_moves() {
+    let (first, max) = (8, 32);
+    let mut probe = super::Probe::default();
+    // The first still verdict: every 8th frame.
+    probe.verdict(true, (first, max));
+    assert_eq!(probes_within(&mut probe, first, 8), vec![7]);
+    // Each further still probe doubles it, up to 32.
+    probe.verdict(true, (first, max));
+    assert_eq!(probes_within(&mut probe, first, 16), vec![15]);
+    probe.verdict(true, (first, max));
+    assert_eq!(probes_within(&mut probe, first, 32), vec![31]);
+    probe.verdict(true, (first, max));
+    assert_eq!(probes_within(&mut probe, first, 64), vec![31, 63], "capped at 32");
+    // A probe that is not clearly still ends the phase: every frame solves until it is again,
+    // and the interval starts from 8 once more.
+    probe.verdict(false, (first, max));
+    assert!(probes_within(&mut probe, first, 5).len() == 5);
+    probe.verdict(true, (first, max));
+    assert_eq!(probes_within(&mut probe, first, 8), vec![7]);
+    // A maximum equal to the first interval: the fixed interval of before.
+    let mut fixed = super::Probe::default();
+    for _ in 0..4 {
+        fixed.verdict(true, (first, first));
+    }
+    assert_eq!(probes_within(&mut fixed, first, 24), vec![7, 15, 23]);
+}
+
+#[test]
+fn a_rigid_residual_risen_between_probes_calls_the_next_probe_at_once() {
+    let (first, max) = (8, 32);
+    let mut probe = super::Probe::default();
+    for _ in 0..3 {
+        probe.verdict(true, (first, max));
+    }
+    assert_eq!(probes_within(&mut probe, first, 32), vec![31], "every 32nd frame");
+    // Still frames between probes: 20 µm ± 1 µm. Not judged before four of them.
+    assert!(!probe.observe(80e-6, 1.5), "the first frames only build the mean");
+    let mut probe = super::Probe::default();
+    for _ in 0..3 {
+        probe.verdict(true, (first, max));
+    }
+    for k in 0..10 {
+        assert!(probe.skips(first));
+        assert!(!probe.observe(20e-6 + if k % 2 == 0 { 1e-6 } else { -1e-6 }, 1.5));
+    }
+    // 1.4× is within the factor, 1.6× beyond it: the next frame probes, then every 8th.
+    assert!(probe.skips(first));
+    assert!(!probe.observe(28e-6, 1.5));
+    assert!(probe.skips(first));
+    assert!(probe.observe(32e-6, 1.5));
+    assert!(!probe.skips(first), "the frame after the rise probes");
+    probe.verdict(true, (first, max));
+    assert_eq!(probes_within(&mut probe, first, 16), vec![15], "the interval starts again from 8, doubled by the still probe");
+    // Off with a factor of 0; a residual that is not finite is ignored.
+    assert!(!probe.observe(1.0, 0.0));
+    assert!(!probe.observe(f64::NAN, 1.5));
+}
+
 #[test]
 fn a_clearly_moving_wall_starts_from_the_coarse_levels_on_all_but_every_nth_frame() {
     let mut moving = super::Moving::default();

@@ -7,7 +7,9 @@ use capsule_slam_framework::{Context, Iso3};
 
 use super::solve;
 
-/// While the wall is clearly still, the warp is solved on every n-th frame only.
+/// While the wall is clearly still, the warp is solved on every n-th frame only, n doubling
+/// while the probes keep finding it still; a rise of the rigid residual between probes calls
+/// the next one at once.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct Probe {
     /// Whether the wall is judged clearly still.
@@ -16,17 +18,62 @@ pub(crate) struct Probe {
     pub(crate) streak: u32,
     /// Frames since the last solve while still.
     pub(crate) skipped: u32,
+    /// The interval while still, frames (0: the first, `still_probe_every_frames`).
+    every: u32,
+    /// Running mean of the rigid RMS residual over the skipped frames of this still phase, m,
+    /// and how many it has seen.
+    mean_rms_m: f64,
+    seen: u32,
+    /// The next frame probes (the residual rose).
+    due: bool,
 }
 
+/// Skipped frames the residual's mean needs before a rise is judged against it.
+const RISE_AFTER_FRAMES: u32 = 4;
+/// Frames the residual's running mean remembers (each new one weighs at least 1 / this): the
+/// view changes as the capsule moves on.
+const RISE_MEMORY_FRAMES: u32 = 30;
+
 impl Probe {
-    /// Whether this frame skips the warp solve (and counts it).
-    pub(crate) fn skips(&mut self, every: u32) -> bool {
-        if !self.still || self.skipped + 1 >= every {
+    /// Whether this frame skips the warp solve (and counts it), the interval being `first`
+    /// frames at first (`still_probe_every_frames`).
+    pub(crate) fn skips(&mut self, first: u32) -> bool {
+        if !self.still || self.due || self.skipped + 1 >= self.every.max(first) {
             self.skipped = 0;
+            self.due = false;
             return false;
         }
         self.skipped += 1;
         true
+    }
+
+    /// Files a probe's verdict: clearly still or not. A second clearly still verdict in a row
+    /// doubles the interval, from `first` up to `max` frames; anything else ends the still phase
+    /// (its interval and residual mean with it).
+    pub(crate) fn verdict(&mut self, still: bool, (first, max): (u32, u32)) {
+        if still && self.still {
+            self.every = self.every.max(first).saturating_mul(2).min(max.max(first));
+        } else if !still {
+            *self = Self { streak: self.streak, ..Self::default() };
+        }
+        self.still = still;
+    }
+
+    /// Files a skipped frame's rigid RMS residual `rms_m`; one above `rise` times the running
+    /// mean of those before it (0: never) calls a probe on the next frame and returns the
+    /// interval to its first. Returns whether it did.
+    pub(crate) fn observe(&mut self, rms_m: f64, rise: f64) -> bool {
+        if !rms_m.is_finite() {
+            return false;
+        }
+        if rise > 0.0 && self.seen >= RISE_AFTER_FRAMES && rms_m > rise * self.mean_rms_m {
+            self.due = true;
+            self.every = 0;
+            return true;
+        }
+        self.seen += 1;
+        self.mean_rms_m += (rms_m - self.mean_rms_m) / f64::from(self.seen.min(RISE_MEMORY_FRAMES));
+        false
     }
 }
 
