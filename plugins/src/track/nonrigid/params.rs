@@ -195,7 +195,7 @@ capsule_slam_framework::plugin_params! {
         pub still_probe_every_frames: u32 = 8; unit = "frames"; range = 1.0..=1000.0;
         /// While the wall stays clearly still, each probe that finds it so doubles the interval,
         /// from `still_probe_every_frames` up to this many frames: a still wall's cost falls
-        /// toward `icp-rgb`'s (rigid preset 2, 320×320: 30 probes in frames 60–299 at 8, 10 with
+        /// toward `icp-rgb`'s (rigid preset 2, 320×320: 30 probes in frames 60–299 at 8, 7 with
         /// the doubling; each about 10 ms of tracking, `docs/results/speed.md`). A wall that
         /// starts moving is caught by `still_probe_residual_rise` before the interval ends.
         /// Equal to `still_probe_every_frames`: a fixed interval.
