@@ -103,6 +103,18 @@ capsule_slam_framework::plugin_params! {
         pub iterations_l2: u32 = 4; unit = "-"; range = 0.0..=100.0;
         /// Stop a level when the step is below this (‖ξ‖, metres and radians mixed as in the twist).
         pub convergence: f64 = 1.0e-5; unit = "-"; range = 0.0..=1.0;
+        /// Stop level 0 also when the step is this small in the system's own information: δᵀAδ,
+        /// the decrease of the χ² the step predicts, in units of σ² (1e-3: a thirtieth of the
+        /// pose's standard deviation). The test in metres and radians above cannot tell a
+        /// converged monocular pose, whose steps wander by 1–2 µm at the wall from iteration 5
+        /// on (the photometric weights and relighting move with the pose), from one still
+        /// converging; a quarter of those frames ran to the cap of 10. 0: the step norm alone
+        /// (`register.rs`; `docs/results/speed.md`, "Convergence in the system's information").
+        pub convergence_chi2: f64 = 1.0e-3; unit = "σ²"; range = 0.0..=1.0e6;
+        /// The same for the coarse levels 1 and 2, whose pose the next level refines: their
+        /// first step there is 0.8–3 σ² (the median, sensor depth), so iterating a coarse level
+        /// below a tenth of a σ buys nothing.
+        pub convergence_chi2_coarse: f64 = 1.0e-2; unit = "σ²"; range = 0.0..=1.0e6;
         /// Use every n-th pixel of level 0 in x and y (ElasticFusion: 1, all; 2 tracks as well,
         /// 1.6× faster, `docs/results/tracking.md`).
         pub stride_l0: u32 = 2; unit = "px"; range = 1.0..=8.0;

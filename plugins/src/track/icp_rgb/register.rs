@@ -313,7 +313,8 @@ impl IcpRgb {
 
     /// Gauss-Newton iterations on one level from `run.t` until `upto` have run on it
     /// (`iterations_l0/1/2` at most) or the level ends: the step falls below `convergence`, or
-    /// the system has none. A level-0 system is kept in `run.fin` (the last one accumulated).
+    /// its δᵀAδ below `convergence_chi2` (level 0) or `convergence_chi2_coarse`, or the system
+    /// has none. A level-0 system is kept in `run.fin` (the last one accumulated).
     fn iterate(&self, inputs: &gn::Inputs<'_>, level: usize, w: &Weights, run: &mut Run, upto: u32) {
         while !run.level_ended && run.on_level < upto {
             run.on_level += 1;
@@ -327,7 +328,10 @@ impl IcpRgb {
             };
             run.t = capsule_slam_framework::geometry::renormalised(capsule_slam_framework::geometry::exp_se3(&delta) * run.t);
             run.iterations += 1;
-            run.level_ended = delta.norm() < self.params.convergence;
+            // The step's length in the system's own information, δᵀAδ = bᵀA⁻¹b: the χ² decrease
+            // it predicts, in σ².
+            let chi2_tol = if level == 0 { self.params.convergence_chi2 } else { self.params.convergence_chi2_coarse };
+            run.level_ended = delta.norm() < self.params.convergence || delta.dot(&(sys.a.full() * delta)) < chi2_tol;
         }
     }
 

@@ -69,6 +69,43 @@ fn the_motion_prior_does_not_bias_a_static_camera() {
     let _ = Iso3::identity();
 }
 
+/// Frame 104 of preset 1 tracked against frame 100 with `p`, its depth taken as estimated
+/// (the photometric term carries the tracking, and Gauss-Newton converges slowly, as in the
+/// monocular pipeline): the result and frame 100's pose.
+fn tracked_with(p: IcpRgbParams) -> (capsule_slam_framework::TrackResult, Iso3) {
+    let ph = phantom(1, 300, 0.0);
+    let rig = rig(&ph);
+    let (mut a, mut b) = (rgbd(&ph, 100), rgbd(&ph, 104));
+    (a.depth_source, b.depth_source) = (capsule_slam_framework::frame::DepthSource::Estimated, capsule_slam_framework::frame::DepthSource::Estimated);
+    let ta = a.gt_t_world_cam.unwrap();
+    let mut t = tracker(IcpRgbParams { motion_model: super::MotionModel::None, ..p }, &ph);
+    let mut r = StageReport::default();
+    t.track(&a, None, &ta, &mut Context::new(100, &rig, None, &mut r)).unwrap();
+    (t.track(&b, None, &ta, &mut Context::new(104, &rig, None, &mut r)).unwrap(), ta)
+}
+
+#[test]
+fn a_level_ends_once_its_step_is_a_small_fraction_of_its_own_sigma() {
+    let chi2 = |fine: f64, coarse: f64| tracked_with(IcpRgbParams { convergence_chi2: fine, convergence_chi2_coarse: coarse, ..IcpRgbParams::default() });
+    let (norm_alone, ta) = chi2(0.0, 0.0);
+    let (default, _) = chi2(IcpRgbParams::default().convergence_chi2, IcpRgbParams::default().convergence_chi2_coarse);
+    assert_eq!((norm_alone.status, default.status), (TrackStatus::Tracked, TrackStatus::Tracked));
+    // Each tolerance acts on its own levels: any step ends a level, one iteration each.
+    assert_eq!(chi2(1e9, 1e9).0.iterations, 3);
+    let (fine_only, coarse_only) = (chi2(1e9, 0.0).0.iterations, chi2(0.0, 1e9).0.iterations);
+    assert!(fine_only < norm_alone.iterations && coarse_only < norm_alone.iterations, "{fine_only} and {coarse_only} against {}", norm_alone.iterations);
+    // The default stops sooner, at a pose within a seventieth of a σ (2e-4 σ²) of the one the
+    // step norm alone reaches (the covariance is that of the left increment on the previous
+    // camera's pose).
+    assert!(default.iterations < norm_alone.iterations, "{} against {} iterations", default.iterations, norm_alone.iterations);
+    let xi = capsule_slam_framework::geometry::log_se3(&(ta.inverse() * default.t_world_cam * (ta.inverse() * norm_alone.t_world_cam).inverse()));
+    let info = default.covariance.and_then(|c| c.try_inverse()).expect("a covariance");
+    let apart = xi.dot(&(info * xi));
+    // Measured: 7e-5 σ² (13 iterations against 18); level 0 stopped at the coarse levels'
+    // tolerance, 1e-2, lands 4e-4 away, and at 0.1, 1.6e-3.
+    assert!(apart < 2e-4 && apart > 0.0, "the poses are {apart:.2e} σ² apart");
+}
+
 /// The live and reference pyramids of two phantom frames, the live one with a uniform depth σ.
 pub(super) fn levels(sigma_live_m: Option<f32>) -> (Vec<super::frames::Level>, Vec<super::frames::Level>) {
     let ph = phantom(5, 300, 0.0);
