@@ -140,7 +140,12 @@ impl System {
     /// many σ² of evidence the data hold against the pose the system was built at; infinite
     /// where A is not positive definite.
     pub fn step_chi2(&self) -> f64 {
-        self.step().map_or(f64::INFINITY, |d| d.dot(&(self.a.full() * d)))
+        self.step().map_or(f64::INFINITY, |d| self.chi2_of(&d))
+    }
+
+    /// A step `d` measured in the system's own information, `dᵀAd`, σ².
+    pub fn chi2_of(&self, d: &Vector6<f64>) -> f64 {
+        d.dot(&(self.a.full() * d))
     }
 
     /// RMS of the ICP residuals, metres.

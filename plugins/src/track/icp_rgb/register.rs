@@ -331,7 +331,7 @@ impl IcpRgb {
             // The step's length in the system's own information, δᵀAδ = bᵀA⁻¹b: the χ² decrease
             // it predicts, in σ².
             let chi2_tol = if level == 0 { self.params.convergence_chi2 } else { self.params.convergence_chi2_coarse };
-            run.level_ended = delta.norm() < self.params.convergence || delta.dot(&(sys.a.full() * delta)) < chi2_tol;
+            run.level_ended = delta.norm() < self.params.convergence || sys.chi2_of(&delta) < chi2_tol;
         }
     }
 
